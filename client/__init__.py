@@ -1,0 +1,1 @@
+"""Player, viewer and the `posecast` command line."""

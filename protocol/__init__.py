@@ -1,0 +1,1 @@
+"""Wire protocol: message models, codec and clock math (pure, no I/O)."""

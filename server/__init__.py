@@ -1,0 +1,1 @@
+"""The asyncio websockets server that solves and broadcasts avatars."""
