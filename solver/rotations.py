@@ -118,13 +118,13 @@ def angle_between(a: ArrayLike, b: ArrayLike) -> Array:
 
 def between(u: ArrayLike, v: ArrayLike) -> Array:
     """Shortest-arc rotation taking direction u onto direction v."""
-    u = normalize_vec(u)
-    v = normalize_vec(v)
+    u, v = np.broadcast_arrays(normalize_vec(u), normalize_vec(v))
     d = np.sum(u * v, axis=-1)
     c = np.cross(u, v)
     q = np.concatenate([c, (1.0 + d)[..., None]], axis=-1)
-    # opposite vectors: any axis perpendicular to u
-    opposite = d < -1.0 + 1e-12
+    # opposite vectors: any axis perpendicular to u. The cross-product axis is good to
+    # ~1e-16/|c| and the fixed axis lands |c| away from v: switch where both are ~sqrt(eps).
+    opposite = (d < 0.0) & (np.linalg.norm(c, axis=-1) < 3e-8)
     if np.any(opposite):
         perp = np.cross(u, np.array([1.0, 0.0, 0.0]))
         weak = np.linalg.norm(perp, axis=-1) < 1e-6

@@ -26,7 +26,7 @@ class Skeleton:
     offsets: NDArray[np.float64]  # (J, 3) rest translation from the parent, metres
     # (J, 3) offset of a leaf joint's end point (BVH "End Site", the tip of a bone with no
     # child joint), zero where unknown; gives leaf bones (head, toes) a direction.
-    tips: NDArray[np.float64] = field(default=None)  # type: ignore[assignment]
+    tips: NDArray[np.float64] = field(default=None)  # type: ignore[arg-type]
 
     def __post_init__(self) -> None:
         parents = np.asarray(self.parents, dtype=np.int32)

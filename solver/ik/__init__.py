@@ -1,0 +1,106 @@
+"""Inverse kinematics: solve B avatars in one call, by solver name.
+
+    state = PoseBatch.rest(rig, B)
+    solve(solver, targets, state)       # targets: (B, 6, 7) in rig.EFFECTORS order
+
+Solvers (one file each): ``analytic`` (the default: closed-form limbs and spine plus a
+short refinement), ``dls`` (damped least squares over whole chains) and ``paper`` (the
+paper's reduced-Jacobian pseudo-inverse). Every solver warm-starts from the pose in the
+state and writes the new pose into it; every solver keeps every joint within its limits.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from solver.ik.analytic import solve_analytic_batch
+from solver.ik.chains import ChainArrays, chain_arrays
+from solver.ik.dls import solve_dls_batch
+from solver.ik.paper import solve_paper_batch
+from solver.rig import Rig
+
+SOLVERS = ("analytic", "dls", "paper")
+DEFAULT_SOLVER = "analytic"
+
+
+@dataclass(frozen=True)
+class SolverOptions:
+    max_iterations: int | None = None  # per chain; None: the solver's own default
+    epsilon: float = 1e-4  # stop when the error norm (m and weighted rad) is below this
+    damping: float | None = None  # lambda; None: the solver's tuned default
+    rotation_weight: float = 0.3  # metres per radian when errors are compared
+
+
+DEFAULTS: dict[str, dict[str, float]] = {
+    # tuned on the Vive recordings: see README, "Solvers"
+    "analytic": {"max_iterations": 4, "damping": 0.02},
+    "dls": {"max_iterations": 20, "damping": 0.05},
+    "paper": {"max_iterations": 100, "damping": 1e-3},
+}
+
+
+@dataclass(eq=False)
+class PoseBatch:
+    """The pose of B avatars: local joint rotations and the root joint's position."""
+
+    rotations: NDArray[np.float64]  # (B, J, 4)
+    root: NDArray[np.float64]  # (B, 3)
+    iterations: NDArray[np.int64] = field(default=None)  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        if self.iterations is None:
+            self.iterations = np.zeros(self.rotations.shape[0], dtype=np.int64)
+
+    @classmethod
+    def canonical(cls, rig: Rig, batch: int) -> PoseBatch:
+        rot = np.ascontiguousarray(np.broadcast_to(rig.canonical, (batch, *rig.canonical.shape)))
+        root = np.repeat(rig.skeleton.offsets[:1], batch, axis=0)
+        return cls(rot.copy(), root.copy())
+
+
+class Solver:
+    """A named solver bound to one rig topology (all avatars of a batch share it; their
+    bone lengths may differ)."""
+
+    def __init__(self, rig: Rig, name: str = DEFAULT_SOLVER,
+                 options: SolverOptions | None = None) -> None:
+        if name not in SOLVERS:
+            raise ValueError(f"unknown solver {name!r}: choose one of {', '.join(SOLVERS)}")
+        self.rig = rig
+        self.name = name
+        self.options = options or SolverOptions()
+        d = DEFAULTS[name]
+        self.max_iterations = int(self.options.max_iterations
+                                  if self.options.max_iterations is not None
+                                  else d["max_iterations"])
+        self.damping = float(self.options.damping if self.options.damping is not None
+                             else d["damping"])
+        self.arrays: ChainArrays = chain_arrays(rig)
+
+    def solve(self, targets: NDArray[np.float64], state: PoseBatch,
+              offsets: NDArray[np.float64] | None = None) -> None:
+        """Solve every avatar of the batch towards its targets (B, 6, 7), in place.
+        ``offsets`` (B, J, 3) gives each avatar's bone lengths; default: the rig's."""
+        a = self.arrays
+        if offsets is None:
+            offsets = self.rig.skeleton.offsets[None]
+        o = self.options
+        if self.name == "analytic":
+            solve_analytic_batch(a.parents, offsets, a.canonical, a.pre, a.post, a.lo, a.hi,
+                                 a.dofmask, a.pelvis, a.chains, a.lengths, targets,
+                                 state.rotations, state.root, o.rotation_weight,
+                                 self.damping, self.max_iterations, o.epsilon,
+                                 state.iterations)
+        elif self.name == "dls":
+            solve_dls_batch(a.parents, offsets, a.pre, a.post, a.lo, a.hi, a.dofmask,
+                            a.pelvis, a.chains, a.lengths, targets, state.rotations,
+                            state.root, o.rotation_weight, self.damping,
+                            self.max_iterations, o.epsilon, state.iterations)
+        else:
+            solve_paper_batch(a.parents, offsets, a.pre, a.post, a.lo, a.hi, a.dofmask,
+                              a.pelvis, a.paper_chains, a.paper_lengths, targets,
+                              state.rotations, state.root, self.damping,
+                              self.max_iterations, o.epsilon, state.iterations)

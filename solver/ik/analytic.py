@@ -1,0 +1,368 @@
+"""The default solver: closed-form limbs and spine, then a short damped refinement.
+
+- Pelvis: the hip tracker's pose, exactly.
+- Spine: the head's rotation relative to the pelvis is spread evenly over the spine and
+  neck joints, then the chain bends (each joint taking its share of the remaining swing)
+  until the head sits on its target; the head joint takes the exact orientation.
+- Arms and legs: the elbow (knee) angle follows from the shoulder-wrist (hip-ankle)
+  distance in closed form, through the hinge's own axis and the real bone offsets. The
+  swivel of the elbow (knee) about the shoulder-wrist line is the one that puts the
+  forearm (shin) where the hand's (foot's) orientation says it should be with a neutral
+  wrist (ankle): the paper's subjects complained of twisted elbows, which is what a
+  position-only solver gives. The forearm takes the hand's twist (pronation), the wrist
+  and ankle the rest. The clavicle follows the hand a little (a fifth of the way).
+- Every joint is clamped to its limits; where a clamp or an unreachable target leaves an
+  error, a few damped least squares iterations over the whole chain finish the job.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from solver.kernels import (
+    clamp_joint,
+    compose_joint,
+    dls_chain,
+    fk_joints,
+    place_root,
+    qaxis_angle,
+    qbetween,
+    qmul,
+    qmul_conj_left,
+    qmul_conj_right,
+    qnormalize,
+    qrotate,
+    qrotate_inv,
+    set_effector_rotation,
+)
+
+CLAVICLE_SHARE = 0.2
+
+
+@njit(cache=True)
+def _rotate_global(parents, q, gq, j, rot, t4a, t4b):  # type: ignore[no-untyped-def]
+    """Turn joint j by a world-frame rotation: G_j <- rot * G_j (local updated)."""
+    qmul(rot, gq[j], t4a)
+    qmul_conj_left(gq[parents[j]], t4a, t4b)
+    for i in range(4):
+        q[j, i] = t4b[i]
+    qnormalize(q[j])
+
+
+@njit(cache=True)
+def solve_spine(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, chain, n,
+                target):  # type: ignore[no-untyped-def]
+    head = chain[n - 1]
+    nb = n - 1  # bending joints (spine, chest, neck)
+    t4a = np.empty(4)
+    t4b = np.empty(4)
+    rot = np.empty(4)
+    tq = np.empty(4)
+    for i in range(4):
+        tq[i] = target[3 + i]
+    # relative rotation pelvis -> head, minus the canonical one, spread over the spine
+    crel = np.empty(4)
+    crel[:] = canon[chain[0]]
+    for i in range(1, n):
+        qmul(crel, canon[chain[i]], t4a)
+        crel[:] = t4a
+    base = parents[chain[0]]
+    qmul_conj_left(gq[base], tq, t4a)  # rel
+    qmul_conj_left(crel, t4a, t4b)  # deviation, in the head's canonical frame
+    rv = np.empty(3)
+    if t4b[3] < 0.0:
+        t4b[:] = -t4b
+    s = math.sqrt(t4b[0] ** 2 + t4b[1] ** 2 + t4b[2] ** 2)
+    ang = 2.0 * math.atan2(s, t4b[3])
+    k = 0.0 if s < 1e-12 else ang / s
+    for i in range(3):
+        rv[i] = t4b[i] * k / n
+    for i in range(nb):
+        j = chain[i]
+        qaxis_angle(0.0, 0.0, 1.0, 0.0, rot)
+        a = math.sqrt(rv[0] ** 2 + rv[1] ** 2 + rv[2] ** 2)
+        if a > 1e-12:
+            qaxis_angle(rv[0] / a, rv[1] / a, rv[2] / a, a, rot)
+        qmul(canon[j], rot, q[j])
+        clamp_joint(q[j], pre[j], post[j], lo[j], hi[j], t4a, t4b)
+    fk_joints(parents, offsets, q, gq, gp, chain, n)
+    # bend so that the head sits on its target: each joint takes its share of the swing
+    r1 = np.empty(3)
+    r2 = np.empty(3)
+    for _sweep in range(2):
+        for i in range(nb):
+            j = chain[i]
+            for d in range(3):
+                r1[d] = gp[head, d] - gp[j, d]
+                r2[d] = target[d] - gp[j, d]
+            qbetween(r1, r2, rot)
+            share = 1.0 / (nb - i)
+            if rot[3] < 0.0:
+                rot[:] = -rot
+            sa = math.sqrt(rot[0] ** 2 + rot[1] ** 2 + rot[2] ** 2)
+            if sa < 1e-12:
+                continue
+            angle = 2.0 * math.atan2(sa, rot[3]) * share
+            qaxis_angle(rot[0] / sa, rot[1] / sa, rot[2] / sa, angle, rot)
+            _rotate_global(parents, q, gq, j, rot, t4a, t4b)
+            clamp_joint(q[j], pre[j], post[j], lo[j], hi[j], t4a, t4b)
+            fk_joints(parents, offsets, q, gq, gp, chain[i:], n - i)
+    set_effector_rotation(parents, q, gq, pre, post, lo, hi, head, target)
+
+
+@njit(cache=True)
+def _hinge_angle(offsets, pre, post, lo, hi, mid, end, dist, current):  # type: ignore[no-untyped-def]
+    """Hinge angle (about the mid joint's limit x axis) that makes the distance from the
+    upper joint to the end joint equal `dist`, nearest the allowed range and `current`."""
+    o1 = offsets[mid]
+    o2 = offsets[end]
+    u = np.empty(3)
+    v = np.empty(3)
+    qrotate_inv(pre[mid], o1, u)
+    qrotate(post[mid], o2, v)
+    A = u[1] * v[1] + u[2] * v[2]
+    Bc = u[2] * v[1] - u[1] * v[2]
+    l1s = o1[0] ** 2 + o1[1] ** 2 + o1[2] ** 2
+    l2s = v[0] ** 2 + v[1] ** 2 + v[2] ** 2
+    K = 0.5 * (dist * dist - l1s - l2s) - u[0] * v[0]
+    Rr = math.sqrt(A * A + Bc * Bc)
+    if Rr < 1e-12:
+        return min(max(current, lo[mid, 0]), hi[mid, 0])
+    phi = math.atan2(Bc, A)
+    c = min(max(K / Rr, -1.0), 1.0)
+    alpha = math.acos(c)
+    best = current
+    best_cost = 1e30
+    for sgn in (-1.0, 1.0):
+        th = phi + sgn * alpha
+        th = math.atan2(math.sin(th), math.cos(th))
+        cl = min(max(th, lo[mid, 0]), hi[mid, 0])
+        cost = abs(cl - th) * 10.0 + abs(cl - current)
+        if cost < best_cost:
+            best_cost = cost
+            best = cl
+    return best
+
+
+@njit(cache=True)
+def _perp_angle(ax, ay, az, bx, by, bz, nx, ny, nz):  # type: ignore[no-untyped-def]
+    """Signed angle about n from a to b, both projected onto the plane normal to n."""
+    da = ax * nx + ay * ny + az * nz
+    db = bx * nx + by * ny + bz * nz
+    ax, ay, az = ax - da * nx, ay - da * ny, az - da * nz
+    bx, by, bz = bx - db * nx, by - db * ny, bz - db * nz
+    cx = ay * bz - az * by
+    cy = az * bx - ax * bz
+    cz = ax * by - ay * bx
+    return math.atan2(cx * nx + cy * ny + cz * nz, ax * bx + ay * by + az * bz)
+
+
+@njit(cache=True)
+def _swivel(Gu, offsets, pre, post, canon, mid, end, tq, dvec, nx, ny, nz,
+            arm):  # type: ignore[no-untyped-def]
+    """Angle to turn the aimed limb about the upper-end line.
+
+    Leg: the knee's hinge axis lines up with the foot's flexion axis (no ankle
+    abduction). Arm: of the two elbow positions that leave the wrist without deviation
+    (the forearm perpendicular to the hand's flexion axis), the one nearer to where a
+    neutral wrist would put the elbow."""
+    t4 = np.empty(4)
+    a = np.empty(3)
+    x_end = np.empty(3)
+    ex = np.zeros(3)
+    ex[0] = 1.0
+    qmul_conj_right(tq, post[end], t4)
+    qrotate(t4, ex, x_end)  # the end bone's flexion axis, world
+    if not arm:
+        qmul(Gu, pre[mid], t4)
+        qrotate(t4, ex, a)  # the knee's hinge axis, world
+        return _perp_angle(a[0], a[1], a[2], x_end[0], x_end[1], x_end[2], nx, ny, nz)
+    E = np.empty(3)
+    qrotate(Gu, offsets[mid], E)  # elbow, relative to the shoulder
+    qmul_conj_right(tq, canon[end], t4)
+    g = np.empty(3)
+    qrotate(t4, offsets[end], g)  # forearm as a neutral wrist would have it
+    # neutral-wrist elbow: its swivel angle picks between the two exact solutions; when
+    # that elbow lies near the shoulder-wrist line its swivel means little: keep ours
+    sx, sy, sz = dvec[0] - g[0], dvec[1] - g[1], dvec[2] - g[2]
+    ds = sx * nx + sy * ny + sz * nz
+    off_line = math.sqrt((sx - ds * nx) ** 2 + (sy - ds * ny) ** 2 + (sz - ds * nz) ** 2)
+    l2 = math.sqrt(g[0] ** 2 + g[1] ** 2 + g[2] ** 2)
+    psi_neutral = 0.0
+    if off_line > 0.15 * l2:
+        psi_neutral = _perp_angle(E[0], E[1], E[2], sx, sy, sz, nx, ny, nz)
+    # elbow circle: centre c along n, radius r, E(psi) = c + r (cos psi u + sin psi v)
+    de = E[0] * nx + E[1] * ny + E[2] * nz
+    ux, uy, uz = E[0] - de * nx, E[1] - de * ny, E[2] - de * nz
+    r = math.sqrt(ux * ux + uy * uy + uz * uz)
+    if r < 0.05 * math.sqrt(E[0] ** 2 + E[1] ** 2 + E[2] ** 2):
+        return 0.0  # (nearly) straight arm: every swivel is exact, keep the current one
+    ux, uy, uz = ux / r, uy / r, uz / r
+    vx, vy, vz = ny * uz - nz * uy, nz * ux - nx * uz, nx * uy - ny * ux
+    # (W - E(psi)) . X = 0  <=>  r (cos psi u.X + sin psi v.X) = (W - c) . X
+    A = r * (ux * x_end[0] + uy * x_end[1] + uz * x_end[2])
+    Bv = r * (vx * x_end[0] + vy * x_end[1] + vz * x_end[2])
+    h = (dvec[0] - de * nx) * x_end[0] + (dvec[1] - de * ny) * x_end[1] + \
+        (dvec[2] - de * nz) * x_end[2]
+    rho = math.sqrt(A * A + Bv * Bv)
+    if rho < 1e-9:
+        return psi_neutral
+    phi = math.atan2(Bv, A)
+    alpha = math.acos(min(max(h / rho, -1.0), 1.0))
+    best = psi_neutral
+    best_d = 1e30
+    for sgn in (-1.0, 1.0):
+        cand = phi + sgn * alpha
+        d = abs(math.atan2(math.sin(cand - psi_neutral), math.cos(cand - psi_neutral)))
+        if d < best_d:
+            best_d = d
+            best = cand
+    return best
+
+
+
+@njit(cache=True)
+def solve_limb(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, upper, mid, end,
+               target, twist_in_mid):  # type: ignore[no-untyped-def]
+    """Two-bone limb: upper (upper arm / thigh), mid (forearm / shin, hinge about its limit
+    x axis, with a twist about the bone when twist_in_mid), end (hand / foot)."""
+    t4a = np.empty(4)
+    t4b = np.empty(4)
+    rot = np.empty(4)
+    tq = np.empty(4)
+    for i in range(4):
+        tq[i] = target[3 + i]
+    S = gp[upper]
+    dvec = np.empty(3)
+    for d in range(3):
+        dvec[d] = target[d] - S[d]
+    dist = math.sqrt(dvec[0] ** 2 + dvec[1] ** 2 + dvec[2] ** 2)
+    if dist < 1e-9:
+        return
+    # current hinge angle, for choosing between the two solutions
+    qmul_conj_left(pre[mid], q[mid], t4a)
+    qmul_conj_right(t4a, post[mid], t4b)
+    cur = 2.0 * math.atan2(t4b[0], t4b[3])
+    theta = _hinge_angle(offsets, pre, post, lo, hi, mid, end, dist, cur)
+    compose_joint(pre[mid], post[mid], theta, 0.0, 0.0, q[mid], t4a, t4b)
+    # aim the limb: end joint in upper-local coordinates, then shortest arc to target
+    w = np.empty(3)
+    tmp = np.empty(3)
+    qrotate(q[mid], offsets[end], tmp)
+    for d in range(3):
+        w[d] = offsets[mid, d] + tmp[d]
+    cur_dir = np.empty(3)
+    qrotate(gq[upper], w, cur_dir)
+    qbetween(cur_dir, dvec, rot)
+    Gu = np.empty(4)
+    qmul(rot, gq[upper], Gu)
+    # swivel about the upper-end line
+    nx, ny, nz = dvec[0] / dist, dvec[1] / dist, dvec[2] / dist
+    psi = _swivel(Gu, offsets, pre, post, canon, mid, end, tq, dvec, nx, ny, nz,
+                  twist_in_mid)
+    qaxis_angle(nx, ny, nz, psi, rot)
+    qmul(rot, Gu, t4a)
+    Gu[:] = t4a
+    qmul_conj_left(gq[parents[upper]], Gu, q[upper])
+    qnormalize(q[upper])
+    clamp_joint(q[upper], pre[upper], post[upper], lo[upper], hi[upper], t4a, t4b)
+    chain3 = np.empty(3, dtype=np.int64)
+    chain3[0] = upper
+    chain3[1] = mid
+    chain3[2] = end
+    fk_joints(parents, offsets, q, gq, gp, chain3, 2)
+    if twist_in_mid:
+        # forearm twist: X = (G_mid post^-1)^-1 T post_end^-1 = Ry(tau) K D_end;
+        # take tau as the twist (about y) of X so that the wrist keeps no twist
+        X = np.empty(4)
+        qmul_conj_right(gq[mid], post[mid], t4a)
+        qmul_conj_left(t4a, tq, t4b)
+        qmul_conj_right(t4b, post[end], X)
+        # twist-first split X = Ry(t) * S gives t = 2 atan2(X_y, X_w); K = post_mid *
+        # pre_end is a pure turn about the shared y axis (the hand's limit frame runs
+        # along the forearm), so tau = t - twist(K)
+        qmul(post[mid], pre[end], t4a)
+        tau = 2.0 * math.atan2(X[1], X[3]) - 2.0 * math.atan2(t4a[1], t4a[3])
+        tau = math.atan2(math.sin(tau), math.cos(tau))
+        compose_joint(pre[mid], post[mid], theta, tau, 0.0, q[mid], t4a, t4b)
+        clamp_joint(q[mid], pre[mid], post[mid], lo[mid], hi[mid], t4a, t4b)
+        fk_joints(parents, offsets, q, gq, gp, chain3[1:], 1)
+    fk_joints(parents, offsets, q, gq, gp, chain3[1:], 2)
+    set_effector_rotation(parents, q, gq, pre, post, lo, hi, end, target)
+
+
+@njit(cache=True)
+def aim_clavicle(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, clav, upper, mid,
+                 end, target, share):  # type: ignore[no-untyped-def]
+    """Turn the clavicle a share of the way from where the straight canonical arm points
+    to where the hand target is, seen from the shoulder."""
+    t4a = np.empty(4)
+    t4b = np.empty(4)
+    rot = np.empty(4)
+    q[clav, :] = canon[clav]
+    chain1 = np.empty(2, dtype=np.int64)
+    chain1[0] = clav
+    chain1[1] = upper
+    fk_joints(parents, offsets, q, gq, gp, chain1, 2)
+    # canonical arm direction in the clavicle's frame: c_u (o_mid + c_m o_end)
+    v = np.empty(3)
+    w = np.empty(3)
+    qrotate(canon[mid], offsets[end], v)
+    for d in range(3):
+        v[d] += offsets[mid, d]
+    qrotate(canon[upper], v, w)
+    a0 = np.empty(3)
+    qrotate(gq[clav], w, a0)
+    t = np.empty(3)
+    for d in range(3):
+        t[d] = target[d] - gp[upper, d]
+    qbetween(a0, t, rot)
+    if rot[3] < 0.0:
+        rot[:] = -rot
+    sa = math.sqrt(rot[0] ** 2 + rot[1] ** 2 + rot[2] ** 2)
+    if sa > 1e-12:
+        angle = 2.0 * math.atan2(sa, rot[3]) * share
+        qaxis_angle(rot[0] / sa, rot[1] / sa, rot[2] / sa, angle, rot)
+        _rotate_global(parents, q, gq, clav, rot, t4a, t4b)
+        clamp_joint(q[clav], pre[clav], post[clav], lo[clav], hi[clav], t4a, t4b)
+    fk_joints(parents, offsets, q, gq, gp, chain1, 2)
+
+
+@njit(cache=True)
+def solve_analytic_batch(parents, offsets, canon, pre, post, lo, hi, dofmask, pelvis,
+                         chains, lengths, targets, q, root, w_rot, lam, refine, eps,
+                         iterations):  # type: ignore[no-untyped-def]
+    B = q.shape[0]
+    J = q.shape[1]
+    shared = offsets.shape[0] == 1
+    gq = np.empty((J, 4))
+    gp = np.empty((J, 3))
+    for b in range(B):
+        off = offsets[0] if shared else offsets[b]
+        qb = q[b]
+        tg = targets[b]
+        place_root(parents, off, qb, root[b], gq, gp, pelvis, tg[1])
+        solve_spine(parents, off, qb, gq, gp, canon, pre, post, lo, hi, chains[0],
+                    lengths[0], tg[0])
+        for c in (1, 2):  # arms: clavicle, upper arm, forearm, hand
+            ch = chains[c]
+            aim_clavicle(parents, off, qb, gq, gp, canon, pre, post, lo, hi, ch[0], ch[1],
+                         ch[2], ch[3], tg[c + 1], CLAVICLE_SHARE)
+            solve_limb(parents, off, qb, gq, gp, canon, pre, post, lo, hi, ch[1], ch[2],
+                       ch[3], tg[c + 1], True)
+        for c in (3, 4):  # legs: thigh, shin, foot
+            ch = chains[c]
+            fk_joints(parents, off, qb, gq, gp, ch, 1)
+            solve_limb(parents, off, qb, gq, gp, canon, pre, post, lo, hi, ch[0], ch[1],
+                       ch[2], tg[c + 1], False)
+        total = 0
+        if refine > 0:
+            for c in range(chains.shape[0]):
+                eff_slot = 0 if c == 0 else c + 1
+                total += dls_chain(parents, off, qb, gq, gp, pre, post, lo, hi, dofmask,
+                                   chains[c], lengths[c], tg[eff_slot], w_rot, lam,
+                                   refine, eps)
+        iterations[b] = total

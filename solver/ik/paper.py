@@ -1,0 +1,110 @@
+"""The paper's solver as published (section 3.1.3): per end effector its three
+predecessor joints, the 6x3 Jacobian of eq. 7/8, the left pseudo-inverse of eq. 9, the
+update of eqs. 10-11, the clamping of eq. 12, iterated until the error norm is below
+epsilon or the iteration limit is reached, warm-started from the previous frame.
+
+Choices where the paper is silent, following its authors' released code:
+- one 6x3 Jacobian per local rotation axis: in each iteration the x, y and z axes are
+  solved in turn, each with a column per predecessor joint; a joint that does not turn
+  about that axis contributes a zero column;
+- a small damping term lambda^2 I inside eq. 9 keeps (J^T J) invertible when a column
+  vanishes;
+- the error is [position difference; rotation vector to the target orientation];
+- the effector bone itself takes the tracker's orientation (within its limits) after
+  each iteration, since the paper's chains move only its predecessors;
+- limits are clamped on the swing/twist angles of ``solver/rig.py``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from solver.kernels import (
+    apply_deviation_step,
+    clamp_joint,
+    effector_error,
+    fk_joints,
+    jacobian_column,
+    place_root,
+    set_effector_rotation,
+    solve_spd,
+)
+
+
+@njit(cache=True)
+def paper_chain(parents, offsets, q, gq, gp, pre, post, lo, hi, dofmask,
+                chain, n, target, lam, max_iter, eps):  # type: ignore[no-untyped-def]
+    eff = chain[n - 1]
+    e = np.empty(6)
+    Jm = np.empty((6, 3))
+    col = np.empty(6)
+    A = np.empty((3, 3))
+    g = np.empty(3)
+    dth = np.empty(3)
+    t4a = np.empty(4)
+    t4b = np.empty(4)
+    npred = n - 1
+    it = 0
+    while it < max_iter:
+        fk_joints(parents, offsets, q, gq, gp, chain, n)
+        if effector_error(gq, gp, eff, target, 1.0, e) < eps:
+            break
+        for ax in range(3):
+            fk_joints(parents, offsets, q, gq, gp, chain, n)
+            effector_error(gq, gp, eff, target, 1.0, e)
+            for i in range(npred):
+                j = chain[i]
+                if dofmask[j, ax]:
+                    jacobian_column(gq, gp, post[j], j, ax, eff, 1.0, col)
+                    for r in range(6):
+                        Jm[r, i] = col[r]
+                else:
+                    for r in range(6):
+                        Jm[r, i] = 0.0
+            # eq. 9 with damping: (J^T J + lam^2 I)^-1 J^T e
+            for a in range(npred):
+                s = 0.0
+                for r in range(6):
+                    s += Jm[r, a] * e[r]
+                g[a] = s
+                for b in range(npred):
+                    s = 0.0
+                    for r in range(6):
+                        s += Jm[r, a] * Jm[r, b]
+                    A[a, b] = s + (lam * lam if a == b else 0.0)
+            if not solve_spd(A, g, npred, dth):
+                continue
+            for i in range(npred):  # eqs. 10-12
+                j = chain[i]
+                if dofmask[j, ax]:
+                    d0 = dth[i] if ax == 0 else 0.0
+                    d1 = dth[i] if ax == 1 else 0.0
+                    d2 = dth[i] if ax == 2 else 0.0
+                    apply_deviation_step(q[j], pre[j], post[j], d0, d1, d2, t4a, t4b)
+                    clamp_joint(q[j], pre[j], post[j], lo[j], hi[j], t4a, t4b)
+        fk_joints(parents, offsets, q, gq, gp, chain, n - 1)
+        set_effector_rotation(parents, q, gq, pre, post, lo, hi, eff, target)
+        it += 1
+    return it
+
+
+@njit(cache=True)
+def solve_paper_batch(parents, offsets, pre, post, lo, hi, dofmask, pelvis,
+                      chains, lengths, targets, q, root, lam, max_iter, eps,
+                      iterations):  # type: ignore[no-untyped-def]
+    B = q.shape[0]
+    J = q.shape[1]
+    shared = offsets.shape[0] == 1
+    gq = np.empty((J, 4))
+    gp = np.empty((J, 3))
+    for b in range(B):
+        off = offsets[0] if shared else offsets[b]
+        place_root(parents, off, q[b], root[b], gq, gp, pelvis, targets[b, 1])
+        total = 0
+        for c in range(chains.shape[0]):
+            eff_slot = 0 if c == 0 else c + 1  # targets order: head, pelvis, hands, feet
+            total += paper_chain(parents, off, q[b], gq, gp, pre, post, lo, hi, dofmask,
+                                 chains[c], lengths[c], targets[b, eff_slot], lam,
+                                 max_iter, eps)
+        iterations[b] = total
