@@ -25,7 +25,7 @@ EPS = 1e-12
 # --- quaternions and vectors on array views ---------------------------------------------
 
 @njit(cache=True, inline="always")
-def qmul(a, b, out):  # type: ignore[no-untyped-def]
+def qmul(a, b, out):
     ax, ay, az, aw = a[0], a[1], a[2], a[3]
     bx, by, bz, bw = b[0], b[1], b[2], b[3]
     out[0] = aw * bx + ax * bw + ay * bz - az * by
@@ -35,7 +35,7 @@ def qmul(a, b, out):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, inline="always")
-def qconj(a, out):  # type: ignore[no-untyped-def]
+def qconj(a, out):
     out[0] = -a[0]
     out[1] = -a[1]
     out[2] = -a[2]
@@ -43,7 +43,7 @@ def qconj(a, out):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, inline="always")
-def qmul_conj_left(a, b, out):  # type: ignore[no-untyped-def]
+def qmul_conj_left(a, b, out):
     """out = conj(a) * b"""
     ax, ay, az, aw = -a[0], -a[1], -a[2], a[3]
     bx, by, bz, bw = b[0], b[1], b[2], b[3]
@@ -54,7 +54,7 @@ def qmul_conj_left(a, b, out):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, inline="always")
-def qmul_conj_right(a, b, out):  # type: ignore[no-untyped-def]
+def qmul_conj_right(a, b, out):
     """out = a * conj(b)"""
     ax, ay, az, aw = a[0], a[1], a[2], a[3]
     bx, by, bz, bw = -b[0], -b[1], -b[2], b[3]
@@ -65,7 +65,7 @@ def qmul_conj_right(a, b, out):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, inline="always")
-def qnormalize(q):  # type: ignore[no-untyped-def]
+def qnormalize(q):
     n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
     if n > EPS:
         q[0] /= n
@@ -75,7 +75,7 @@ def qnormalize(q):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, inline="always")
-def qrotate(q, v, out):  # type: ignore[no-untyped-def]
+def qrotate(q, v, out):
     """out = R(q) v  (out may not alias v)"""
     ux, uy, uz, w = q[0], q[1], q[2], q[3]
     tx = 2.0 * (uy * v[2] - uz * v[1])
@@ -87,7 +87,7 @@ def qrotate(q, v, out):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, inline="always")
-def qrotate_inv(q, v, out):  # type: ignore[no-untyped-def]
+def qrotate_inv(q, v, out):
     """out = R(q)^T v"""
     ux, uy, uz, w = -q[0], -q[1], -q[2], q[3]
     tx = 2.0 * (uy * v[2] - uz * v[1])
@@ -99,7 +99,7 @@ def qrotate_inv(q, v, out):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, inline="always")
-def qfrom_rotvec(x, y, z, out):  # type: ignore[no-untyped-def]
+def qfrom_rotvec(x, y, z, out):
     a = math.sqrt(x * x + y * y + z * z)
     if a < 1e-8:
         k = 0.5 - a * a / 48.0
@@ -113,23 +113,20 @@ def qfrom_rotvec(x, y, z, out):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, inline="always")
-def qto_rotvec(q, out):  # type: ignore[no-untyped-def]
+def qto_rotvec(q, out):
     """Rotation vector of q (shorter way round, angle in [0, pi])."""
     x, y, z, w = q[0], q[1], q[2], q[3]
     if w < 0.0:
         x, y, z, w = -x, -y, -z, -w
     s = math.sqrt(x * x + y * y + z * z)
-    if s < 1e-12:
-        k = 2.0
-    else:
-        k = 2.0 * math.atan2(s, w) / s
+    k = 2.0 if s < 1e-12 else 2.0 * math.atan2(s, w) / s
     out[0] = x * k
     out[1] = y * k
     out[2] = z * k
 
 
 @njit(cache=True, inline="always")
-def qaxis_angle(ax, ay, az, angle, out):  # type: ignore[no-untyped-def]
+def qaxis_angle(ax, ay, az, angle, out):
     """Rotation about a unit axis."""
     s = math.sin(0.5 * angle)
     out[0] = ax * s
@@ -139,7 +136,7 @@ def qaxis_angle(ax, ay, az, angle, out):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, inline="always")
-def qbetween(u, v, out):  # type: ignore[no-untyped-def]
+def qbetween(u, v, out):
     """Shortest-arc rotation taking direction u onto direction v (need not be unit)."""
     nu = math.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
     nv = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
@@ -172,7 +169,7 @@ def qbetween(u, v, out):  # type: ignore[no-untyped-def]
 # --- forward kinematics ----------------------------------------------------------------
 
 @njit(cache=True)
-def fk(parents, offsets, q, root, gq, gp):  # type: ignore[no-untyped-def]
+def fk(parents, offsets, q, root, gq, gp):
     """Global rotations gq (J,4) and positions gp (J,3) of one avatar."""
     tmp = np.empty(3)
     gq[0, :] = q[0]
@@ -187,7 +184,7 @@ def fk(parents, offsets, q, root, gq, gp):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def fk_joints(parents, offsets, q, gq, gp, joints, n):  # type: ignore[no-untyped-def]
+def fk_joints(parents, offsets, q, gq, gp, joints, n):
     """Update globals of the first n listed joints, in order (a chain, parents first)."""
     tmp = np.empty(3)
     for i in range(n):
@@ -201,7 +198,7 @@ def fk_joints(parents, offsets, q, gq, gp, joints, n):  # type: ignore[no-untype
 
 
 @njit(cache=True)
-def fk_batch(parents, offsets, q, root, gq, gp):  # type: ignore[no-untyped-def]
+def fk_batch(parents, offsets, q, root, gq, gp):
     """offsets (B,J,3) or (1,J,3) shared; q (B,J,4); root (B,3)."""
     shared = offsets.shape[0] == 1
     for b in range(q.shape[0]):
@@ -211,7 +208,7 @@ def fk_batch(parents, offsets, q, root, gq, gp):  # type: ignore[no-untyped-def]
 # --- joint limits ----------------------------------------------------------------------
 
 @njit(cache=True)
-def clamp_joint(q, pre, post, lo, hi, tmp4a, tmp4b):  # type: ignore[no-untyped-def]
+def clamp_joint(q, pre, post, lo, hi, tmp4a, tmp4b):
     """Clamp one local rotation q (in place) to its limits: D = pre^-1 q post^-1 split
     into swing (x, z) and twist about y, each clamped, recomposed. Returns True when
     anything was clamped."""
@@ -252,7 +249,7 @@ def clamp_joint(q, pre, post, lo, hi, tmp4a, tmp4b):  # type: ignore[no-untyped-
 
 
 @njit(cache=True)
-def compose_joint(pre, post, sx, ty, sz, out, tmp4a, tmp4b):  # type: ignore[no-untyped-def]
+def compose_joint(pre, post, sx, ty, sz, out, tmp4a, tmp4b):
     """out = pre * (exp(sx, 0, sz) * Ry(ty)) * post"""
     qfrom_rotvec(sx, 0.0, sz, tmp4a)
     qaxis_angle(0.0, 1.0, 0.0, ty, tmp4b)
@@ -264,7 +261,7 @@ def compose_joint(pre, post, sx, ty, sz, out, tmp4a, tmp4b):  # type: ignore[no-
 # --- chains: error, Jacobian, damped least squares ---------------------------------------
 
 @njit(cache=True)
-def effector_error(gq, gp, eff, target, w_rot, e):  # type: ignore[no-untyped-def]
+def effector_error(gq, gp, eff, target, w_rot, e):
     """6-vector [target position - position; w_rot * rotation vector to target]; returns
     its norm."""
     tq = np.empty(4)
@@ -286,7 +283,7 @@ def effector_error(gq, gp, eff, target, w_rot, e):  # type: ignore[no-untyped-de
 
 
 @njit(cache=True)
-def joint_axis_world(gq, post, j, axis, out, tmp4):  # type: ignore[no-untyped-def]
+def joint_axis_world(gq, post, j, axis, out, tmp4):
     """World direction of limit-frame axis (0 x, 1 y, 2 z) of joint j: R(G_j post^-1) e_axis."""
     qmul_conj_right(gq[j], post, tmp4)
     e = np.zeros(3)
@@ -295,7 +292,7 @@ def joint_axis_world(gq, post, j, axis, out, tmp4):  # type: ignore[no-untyped-d
 
 
 @njit(cache=True)
-def jacobian_column(gq, gp, post, j, axis, eff, w_rot, col):  # type: ignore[no-untyped-def]
+def jacobian_column(gq, gp, post, j, axis, eff, w_rot, col):
     """Column of eq. 7: [a x (p_eff - p_j); w_rot * a] for limit axis `axis` of joint j."""
     a = np.empty(3)
     tmp4 = np.empty(4)
@@ -312,7 +309,7 @@ def jacobian_column(gq, gp, post, j, axis, eff, w_rot, col):  # type: ignore[no-
 
 
 @njit(cache=True)
-def solve_spd(A, b, n, x):  # type: ignore[no-untyped-def]
+def solve_spd(A, b, n, x):
     """Solve A x = b for a small symmetric positive definite n x n A (Cholesky, in place
     on a copy). Returns False if A is not positive definite."""
     L = np.zeros((n, n))
@@ -342,7 +339,7 @@ def solve_spd(A, b, n, x):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def apply_deviation_step(q, pre, post, dx, dy, dz, tmp4a, tmp4b):  # type: ignore[no-untyped-def]
+def apply_deviation_step(q, pre, post, dx, dy, dz, tmp4a, tmp4b):
     """q = pre * (D * exp(dx, dy, dz)) * post, with D = pre^-1 q post^-1: turn the joint
     by a small rotation about its own limit-frame axes."""
     qmul_conj_left(pre, q, tmp4a)
@@ -356,7 +353,7 @@ def apply_deviation_step(q, pre, post, dx, dy, dz, tmp4a, tmp4b):  # type: ignor
 
 @njit(cache=True)
 def dls_chain(parents, offsets, q, gq, gp, pre, post, lo, hi, dofmask,
-              chain, n, target, w_rot, lam, max_iter, eps):  # type: ignore[no-untyped-def]
+              chain, n, target, w_rot, lam, max_iter, eps):
     """Damped least squares over every degree of freedom of a chain (parents first, the
     effector last): dtheta = J^T (J J^T + lam^2 I)^-1 e, then clamp to the limits.
     Returns the number of iterations used."""
@@ -419,7 +416,7 @@ def dls_chain(parents, offsets, q, gq, gp, pre, post, lo, hi, dofmask,
 
 
 @njit(cache=True)
-def set_effector_rotation(parents, q, gq, pre, post, lo, hi, j, target):  # type: ignore[no-untyped-def]
+def set_effector_rotation(parents, q, gq, pre, post, lo, hi, j, target):
     """Turn joint j so that its global rotation is the target's (x y z w at target[3:7]),
     within its limits."""
     tq = np.empty(4)
@@ -436,7 +433,7 @@ def set_effector_rotation(parents, q, gq, pre, post, lo, hi, j, target):  # type
 
 
 @njit(cache=True)
-def place_root(parents, offsets, q, root, gq, gp, pelvis, target):  # type: ignore[no-untyped-def]
+def place_root(parents, offsets, q, root, gq, gp, pelvis, target):
     """Drive the pelvis from its target pose: its global rotation and position become the
     target's; joints above it (a static root) keep their rotations, the root moves."""
     fk(parents, offsets, q, root, gq, gp)

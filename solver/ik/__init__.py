@@ -48,7 +48,7 @@ class PoseBatch:
 
     rotations: NDArray[np.float64]  # (B, J, 4)
     root: NDArray[np.float64]  # (B, 3)
-    iterations: NDArray[np.int64] = field(default=None)  # type: ignore[assignment]
+    iterations: NDArray[np.int64] = field(default=None)  # type: ignore[arg-type]
 
     def __post_init__(self) -> None:
         if self.iterations is None:

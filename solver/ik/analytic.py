@@ -43,7 +43,7 @@ CLAVICLE_SHARE = 0.2
 
 
 @njit(cache=True)
-def _rotate_global(parents, q, gq, j, rot, t4a, t4b):  # type: ignore[no-untyped-def]
+def _rotate_global(parents, q, gq, j, rot, t4a, t4b):
     """Turn joint j by a world-frame rotation: G_j <- rot * G_j (local updated)."""
     qmul(rot, gq[j], t4a)
     qmul_conj_left(gq[parents[j]], t4a, t4b)
@@ -54,7 +54,7 @@ def _rotate_global(parents, q, gq, j, rot, t4a, t4b):  # type: ignore[no-untyped
 
 @njit(cache=True)
 def solve_spine(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, chain, n,
-                target):  # type: ignore[no-untyped-def]
+                target):
     head = chain[n - 1]
     nb = n - 1  # bending joints (spine, chest, neck)
     t4a = np.empty(4)
@@ -114,7 +114,7 @@ def solve_spine(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, chain, n,
 
 
 @njit(cache=True)
-def _hinge_angle(offsets, pre, post, lo, hi, mid, end, dist, current):  # type: ignore[no-untyped-def]
+def _hinge_angle(offsets, pre, post, lo, hi, mid, end, dist, current):
     """Hinge angle (about the mid joint's limit x axis) that makes the distance from the
     upper joint to the end joint equal `dist`, nearest the allowed range and `current`."""
     o1 = offsets[mid]
@@ -148,7 +148,7 @@ def _hinge_angle(offsets, pre, post, lo, hi, mid, end, dist, current):  # type: 
 
 
 @njit(cache=True)
-def _perp_angle(ax, ay, az, bx, by, bz, nx, ny, nz):  # type: ignore[no-untyped-def]
+def _perp_angle(ax, ay, az, bx, by, bz, nx, ny, nz):
     """Signed angle about n from a to b, both projected onto the plane normal to n."""
     da = ax * nx + ay * ny + az * nz
     db = bx * nx + by * ny + bz * nz
@@ -162,7 +162,7 @@ def _perp_angle(ax, ay, az, bx, by, bz, nx, ny, nz):  # type: ignore[no-untyped-
 
 @njit(cache=True)
 def _swivel(Gu, offsets, pre, post, canon, mid, end, tq, dvec, nx, ny, nz,
-            arm):  # type: ignore[no-untyped-def]
+            arm):
     """Angle to turn the aimed limb about the upper-end line.
 
     Leg: the knee's hinge axis lines up with the foot's flexion axis (no ankle
@@ -226,7 +226,7 @@ def _swivel(Gu, offsets, pre, post, canon, mid, end, tq, dvec, nx, ny, nz,
 
 @njit(cache=True)
 def solve_limb(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, upper, mid, end,
-               target, twist_in_mid):  # type: ignore[no-untyped-def]
+               target, twist_in_mid):
     """Two-bone limb: upper (upper arm / thigh), mid (forearm / shin, hinge about its limit
     x axis, with a twist about the bone when twist_in_mid), end (hand / foot)."""
     t4a = np.empty(4)
@@ -296,7 +296,7 @@ def solve_limb(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, upper, mid
 
 @njit(cache=True)
 def aim_clavicle(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, clav, upper, mid,
-                 end, target, share):  # type: ignore[no-untyped-def]
+                 end, target, share):
     """Turn the clavicle a share of the way from where the straight canonical arm points
     to where the hand target is, seen from the shoulder."""
     t4a = np.empty(4)
@@ -334,7 +334,7 @@ def aim_clavicle(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, clav, up
 @njit(cache=True)
 def solve_analytic_batch(parents, offsets, canon, pre, post, lo, hi, dofmask, pelvis,
                          chains, lengths, targets, q, root, w_rot, lam, refine, eps,
-                         iterations):  # type: ignore[no-untyped-def]
+                         iterations):
     B = q.shape[0]
     J = q.shape[1]
     shared = offsets.shape[0] == 1

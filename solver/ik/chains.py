@@ -7,6 +7,7 @@ head (spine..head), hand_l, hand_r (clavicle..hand), foot_l, foot_r (thigh..foot
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -69,7 +70,7 @@ def chain_arrays(rig: Rig) -> ChainArrays:
 
 def _check_contiguous(rig: Rig, joints: list[int], name: str) -> None:
     parents = rig.skeleton.parents
-    for a, b in zip(joints, joints[1:], strict=False):
+    for a, b in itertools.pairwise(joints):
         if parents[b] != a:
             raise ValueError(f"chain {name}: {rig.skeleton.names[b]} does not hang from "
                              f"{rig.skeleton.names[a]}")

@@ -15,7 +15,7 @@ from solver.kernels import dls_chain, place_root
 @njit(cache=True)
 def solve_dls_batch(parents, offsets, pre, post, lo, hi, dofmask, pelvis, chains,
                     lengths, targets, q, root, w_rot, lam, max_iter, eps,
-                    iterations):  # type: ignore[no-untyped-def]
+                    iterations):
     B = q.shape[0]
     J = q.shape[1]
     shared = offsets.shape[0] == 1

@@ -34,7 +34,7 @@ from solver.kernels import (
 
 @njit(cache=True)
 def paper_chain(parents, offsets, q, gq, gp, pre, post, lo, hi, dofmask,
-                chain, n, target, lam, max_iter, eps):  # type: ignore[no-untyped-def]
+                chain, n, target, lam, max_iter, eps):
     eff = chain[n - 1]
     e = np.empty(6)
     Jm = np.empty((6, 3))
@@ -92,7 +92,7 @@ def paper_chain(parents, offsets, q, gq, gp, pre, post, lo, hi, dofmask,
 @njit(cache=True)
 def solve_paper_batch(parents, offsets, pre, post, lo, hi, dofmask, pelvis,
                       chains, lengths, targets, q, root, lam, max_iter, eps,
-                      iterations):  # type: ignore[no-untyped-def]
+                      iterations):
     B = q.shape[0]
     J = q.shape[1]
     shared = offsets.shape[0] == 1

@@ -1,0 +1,88 @@
+"""`posecast eval`: read each recording, reconstruct and score it, print a table or JSON.
+
+A file that cannot be read gives one line naming the file and the line, and the command
+exits with status 1 after scoring the others."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from client.builtin import builtin_motion_path
+from client.progress import ProgressBar
+from solver.evaluation import ClipResult, EvalOptions, evaluate_bvh, evaluate_vive, summarize
+from solver.ik import SolverOptions
+from solver.readers.bvh import read_bvh
+from solver.readers.errors import FormatError
+from solver.readers.vive import read_vive
+
+
+def evaluate_file(path: Path, options: EvalOptions, progress: ProgressBar | None) -> ClipResult:
+    suffix = path.suffix.lower()
+    if suffix == ".bvh":
+        return evaluate_bvh(read_bvh(path), options, progress)
+    if suffix in (".csv", ".txt"):
+        return evaluate_vive(read_vive(path), options, progress=progress)
+    raise FormatError(str(path), None, "unknown kind of recording: expected .csv (Vive) or .bvh")
+
+
+def run_eval(files: list[Path], solver: str, iterations: list[int] | None,
+             calibration: str, smoothing: float, as_json: bool) -> int:
+    if not files:
+        files = [builtin_motion_path()]
+    runs: list[int | None] = list(iterations) if iterations else [None]
+    failed = False
+    documents = []
+    for limit in runs:
+        options = EvalOptions(solver, SolverOptions(max_iterations=limit), calibration,
+                              smoothing)
+        clips: list[ClipResult] = []
+        for path in files:
+            bar = None if as_json else ProgressBar(path.name)
+            try:
+                clips.append(evaluate_file(path, options, bar))
+            except (FormatError, OSError) as err:
+                msg = err if isinstance(err, FormatError) else f"{path}: {err.strerror}"
+                print(f"posecast eval: {msg}", file=sys.stderr)
+                failed = True
+            finally:
+                if bar is not None:
+                    bar.close()
+        doc: dict[str, object] = {"solver": solver,
+                                  "clips": [c.as_json() for c in clips],
+                                  "summary": summarize(clips) if clips else {}}
+        if limit is not None:
+            doc["max_iterations"] = limit
+        documents.append((limit, clips, doc))
+    if as_json:
+        out = documents[0][2] if len(documents) == 1 else {
+            "solver": solver, "runs": [d for _, _, d in documents]}
+        print(json.dumps(out))
+    else:
+        for limit, clips, _ in documents:
+            print(format_table(clips, solver, limit))
+    return 1 if failed else 0
+
+
+def format_table(clips: list[ClipResult], solver: str, limit: int | None) -> str:
+    head = f"solver {solver}" + (f", at most {limit} iterations" if limit else "")
+    rows = [("clip", "kind", "frames", "mean mm", "held-out mm", "rot deg", "solve us",
+             "lag ms")]
+    for c in clips:
+        rows.append((c.file.split("/")[-1], c.kind, str(c.frames), f"{c.mean_error_mm:.1f}",
+                     f"{c.heldout_error_mm:.1f}", f"{c.rotation_error_deg:.1f}",
+                     f"{c.solve_us_p50:.1f}", f"{c.lag_ms:.1f}"))
+    if clips:
+        s = summarize(clips)
+        rows.append(("summary", "", "", f"{s['mean_error_mm']:.1f}",
+                     f"{s['heldout_error_mm']:.1f}", f"{s['rotation_error_deg']:.1f}",
+                     f"{s['solve_us_p50']:.1f}", ""))
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines = [head]
+    for n, r in enumerate(rows):
+        lines.append("  ".join(v.ljust(w) if i == 0 else v.rjust(w)
+                               for i, (v, w) in enumerate(zip(r, widths, strict=True))))
+        if n == 0 or n == len(rows) - 2:
+            lines.append("  ".join("-" * w for w in widths))
+    return "\n".join(lines)

@@ -1,0 +1,191 @@
+"""Calibration from a T-pose frame: the person's bone lengths and each device's mounting.
+
+Two methods:
+- ``uniform``: the paper's (eqs. 1-5): one scale s = HMD height / head-bone height,
+  the avatar turned to the user's heading and moved under the HMD.
+- ``fit`` (default): the body scaled so that its eyes meet the HMD, the arms scaled
+  separately so that the wrists meet the controllers (arm span varies independently of
+  height), the arms aimed at the controllers, the pelvis under the head.
+
+Either way every device then gets a *mount*: its pose in the frame of the bone it is
+strapped to, fixed at this frame. Driving devices (head, hip, hands, feet) give the
+solver its targets through their mounts; held-out devices (forearms, knees) are only
+predicted through theirs, on whichever of two bones they sit nearest to at calibration.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from solver import rotations as R
+from solver.motion import DRIVING_DEVICES
+from solver.rig import EFFECTORS, Rig, global_pose
+
+# device -> candidate bones (roles); the nearest candidate at calibration wins
+DEVICE_BONES: dict[str, tuple[str, ...]] = {
+    "head": ("head",), "hip": ("pelvis",),
+    "left_hand": ("hand_l",), "right_hand": ("hand_r",),
+    "left_foot": ("foot_l",), "right_foot": ("foot_r",),
+    "left_forearm": ("forearm_l", "upperarm_l"), "right_forearm": ("forearm_r", "upperarm_r"),
+    "left_knee": ("thigh_l", "shin_l"), "right_knee": ("thigh_r", "shin_r"),
+}
+# driving device of each effector, in rig.EFFECTORS order
+EFFECTOR_DEVICES = ("head", "hip", "left_hand", "right_hand", "left_foot", "right_foot")
+
+# Priors of the fit, in body coordinates (x left, y up, z forward), metres
+EYE_FROM_HEAD_JOINT = np.array([0.0, 0.06, 0.09])  # HMD origin sits at the eyes
+CONTROLLER_BEYOND_WRIST = 0.08  # a held controller's origin, past the wrist, along the arm
+
+METHODS = ("fit", "uniform")
+GRIP_TWIST = 0.0  # radians; see README: the recordings give no clear winner
+
+
+@dataclass(frozen=True)
+class Mount:
+    """A device rigidly attached to a bone: device = bone * (rotation, position)."""
+
+    joint: int
+    position: NDArray[np.float64]  # (3,) in the bone's frame
+    rotation: NDArray[np.float64]  # (4,)
+
+
+@dataclass(frozen=True, eq=False)
+class Calibration:
+    rig: Rig
+    offsets: NDArray[np.float64]  # (J, 3) the person's bone offsets
+    pose: NDArray[np.float64]  # (J, 4) local rotations at the calibration frame
+    root: NDArray[np.float64]  # (3,) root position at the calibration frame
+    mounts: dict[str, Mount]
+    scale: float  # overall body scale against the template
+
+    def targets(self, positions: NDArray[np.float64], rotations: NDArray[np.float64],
+                devices: tuple[str, ...]) -> NDArray[np.float64]:
+        """Bone targets (F, 6, 7) for the solver from device poses (F, D, 3/4)."""
+        F = positions.shape[0]
+        out = np.empty((F, len(EFFECTORS), 7))
+        for e, name in enumerate(EFFECTOR_DEVICES):
+            d = devices.index(name)
+            m = self.mounts[name]
+            bone_q = R.mul(rotations[:, d], R.conjugate(m.rotation))
+            out[:, e, :3] = positions[:, d] - R.rotate(bone_q, m.position)
+            out[:, e, 3:] = bone_q
+        return out
+
+    def predict(self, gq: NDArray[np.float64], gp: NDArray[np.float64],
+                devices: tuple[str, ...]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Device positions (F, D, 3) and rotations (F, D, 4) implied by global bone poses
+        (F, J, 4) and (F, J, 3)."""
+        pos = np.empty((gq.shape[0], len(devices), 3))
+        rot = np.empty((gq.shape[0], len(devices), 4))
+        for d, name in enumerate(devices):
+            m = self.mounts[name]
+            bq = gq[:, m.joint]
+            pos[:, d] = gp[:, m.joint] + R.rotate(bq, m.position)
+            rot[:, d] = R.mul(bq, m.rotation)
+        return pos, rot
+
+
+def _heading(positions: dict[str, NDArray[np.float64]]) -> NDArray[np.float64]:
+    """Rotation from body axes to world at the T-pose: left from the right hand to the
+    left hand, up +y, forward = left x up... (x left, y up, z forward)."""
+    left = positions["left_hand"] - positions["right_hand"]
+    left[1] = 0.0
+    x = R.normalize_vec(left)
+    y = np.array([0.0, 1.0, 0.0])
+    z = np.cross(x, y)
+    return R.from_matrix(np.stack([x, y, z], axis=1))
+
+
+def _aim(rig: Rig, offsets: NDArray[np.float64], pose: NDArray[np.float64],
+         root: NDArray[np.float64], upper: int, end: int,
+         target: NDArray[np.float64]) -> None:
+    """Turn the upper bone so that the end joint points at the target (straight limb)."""
+    gq, gp = global_pose(rig.skeleton.with_offsets(offsets), pose, root)
+    rot = R.between(gp[end] - gp[upper], target - gp[upper])
+    parent = rig.skeleton.parents[upper]
+    pose[upper] = R.mul(R.conjugate(gq[parent]), R.mul(rot, gq[upper]))
+
+
+def calibrate(rig: Rig, positions: dict[str, NDArray[np.float64]],
+              rotations: dict[str, NDArray[np.float64]], method: str = "fit") -> Calibration:
+    """Calibrate from one T-pose frame of device poses (world metres, +y up, floor y=0).
+    Only the driving devices shape the body; every device given gets a mount."""
+    if method not in METHODS:
+        raise ValueError(f"unknown calibration {method!r}: choose one of {', '.join(METHODS)}")
+    missing = [d for d in DRIVING_DEVICES if d not in positions]
+    if missing:
+        raise ValueError(f"calibration needs the devices {', '.join(missing)}")
+    sk = rig.skeleton
+    head_j = rig.role("head")
+    yaw = _heading(positions)
+    _canon_gq, canon_gp = global_pose(sk, rig.canonical)
+    floor = canon_gp[:, 1].min() if method == "fit" else 0.0
+    hmd = positions["head"]
+    offsets = sk.offsets.copy()
+    if method == "uniform":
+        # eqs. 1-5: s = HMD height / head height; turned to the user; under the HMD
+        s = hmd[1] / canon_gp[head_j, 1]
+        offsets *= s
+        pose = rig.canonical.copy()
+        pose[0] = R.mul(yaw, pose[0])
+        root = np.array([hmd[0], offsets[0][1], hmd[2]])  # eq. 2: under the HMD
+    else:
+        eye_height = canon_gp[head_j, 1] - floor + EYE_FROM_HEAD_JOINT[1]
+        s = (hmd[1] - 0.0) / eye_height
+        offsets *= s
+        # arms: scale upper arm and forearm so that the wrists reach the controllers
+        span = np.linalg.norm((positions["left_hand"] - positions["right_hand"])[[0, 2]])
+        wl, wr = rig.role("hand_l"), rig.role("hand_r")
+        span_model = abs(canon_gp[wl, 0] - canon_gp[wr, 0]) * s
+        arm_model = 0.0
+        for side in "lr":
+            for role in ("forearm", "hand"):
+                arm_model += float(np.linalg.norm(offsets[rig.role(f"{role}_{side}")]))
+        wrist_span = span - 2.0 * CONTROLLER_BEYOND_WRIST
+        k = 1.0 + (wrist_span - span_model) / arm_model
+        k = float(np.clip(k, 0.8, 1.25))
+        for side in "lr":
+            for role in ("forearm", "hand"):
+                offsets[rig.role(f"{role}_{side}")] *= k
+        pose = rig.canonical.copy()
+        pose[0] = R.mul(yaw, pose[0])
+        # place the avatar: its eyes at the HMD, feet on the floor
+        root = np.zeros(3)
+        gq, gp = global_pose(sk.with_offsets(offsets), pose, root)
+        eye = gp[head_j] + R.rotate(yaw, EYE_FROM_HEAD_JOINT * s)
+        root = np.array([hmd[0] - eye[0], -gp[:, 1].min(), hmd[2] - eye[2]])
+        # arms: aim each straight arm at its controller's wrist point
+        for side, dev in (("l", "left_hand"), ("r", "right_hand")):
+            upper, end = rig.role(f"upperarm_{side}"), rig.role(f"hand_{side}")
+            gq, gp = global_pose(sk.with_offsets(offsets), pose, root)
+            out = R.normalize_vec(gp[end] - gp[rig.role(f"upperarm_{side}")])
+            _aim(rig, offsets, pose, root, upper, end,
+                 positions[dev] - CONTROLLER_BEYOND_WRIST * out)
+        # the grip: the forearm twist of the calibration pose (palm down = 0)
+        for side in "lr":
+            j = rig.role(f"forearm_{side}")
+            t4 = R.from_axis_angle([0.0, 1.0, 0.0], GRIP_TWIST)
+            pose[j] = R.mul(R.mul(rig.pre[j], t4), rig.post[j])
+    gq, gp = global_pose(sk.with_offsets(offsets), pose, root)
+    mounts = {}
+    for name, p in positions.items():
+        candidates = [rig.role(r) for r in DEVICE_BONES[name]]
+        joint = min(candidates, key=lambda j: _distance_to_bone(rig, gp, j, p))
+        inv = R.conjugate(gq[joint])
+        mounts[name] = Mount(joint, R.rotate(inv, p - gp[joint]),
+                             R.mul(inv, rotations[name]))
+    return Calibration(rig, offsets, pose, root, mounts, float(s))
+
+
+def _distance_to_bone(rig: Rig, gp: NDArray[np.float64], j: int,
+                      p: NDArray[np.float64]) -> float:
+    """Distance from a point to the segment from joint j to its (first) child."""
+    kids = rig.skeleton.children(j)
+    a = gp[j]
+    b = gp[kids[0]] if kids else gp[j]
+    ab = b - a
+    t = 0.0 if not ab.any() else float(np.clip(np.dot(p - a, ab) / np.dot(ab, ab), 0, 1))
+    return float(np.linalg.norm(a + t * ab - p))

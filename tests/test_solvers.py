@@ -1,0 +1,121 @@
+"""The IK solvers: reachable targets are reached, limits hold, batches equal single solves."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from solver import rotations as R
+from solver.fk import forward_kinematics
+from solver.ik import SOLVERS, PoseBatch, Solver, SolverOptions
+from solver.kernels import compose_joint
+from solver.readers.gltf import load_makehuman
+from solver.rig import Rig, build_rig, within_limits
+
+
+@pytest.fixture(scope="module")
+def rig() -> Rig:
+    return build_rig(load_makehuman().skeleton)
+
+
+def random_poses(rig: Rig, n: int, frac: float, seed: int) -> np.ndarray:
+    """Poses with every joint at a random deviation inside `frac` of its limits."""
+    rng = np.random.default_rng(seed)
+    q = PoseBatch.canonical(rig, n).rotations.copy()
+    t1, t2, out = np.empty(4), np.empty(4), np.empty(4)
+    for b in range(n):
+        for j in np.nonzero(rig.movable)[0]:
+            d = rng.uniform(rig.lo[j] * frac, rig.hi[j] * frac)
+            compose_joint(rig.pre[j], rig.post[j], d[0], d[1], d[2], out, t1, t2)
+            q[b, j] = out
+    return q
+
+
+def targets_of(rig: Rig, q: np.ndarray, root: np.ndarray) -> np.ndarray:
+    gq, gp = forward_kinematics(rig.skeleton, q, root)
+    return np.concatenate([gp[:, rig.effectors], gq[:, rig.effectors]], axis=-1)
+
+
+def effector_errors(rig: Rig, state: PoseBatch, targets: np.ndarray) -> tuple[np.ndarray,
+                                                                               np.ndarray]:
+    gq, gp = forward_kinematics(rig.skeleton, state.rotations, state.root)
+    pos = np.linalg.norm(gp[:, rig.effectors] - targets[..., :3], axis=-1)
+    rot = np.degrees(R.angle_between(gq[:, rig.effectors], targets[..., 3:]))
+    return pos, rot
+
+
+def test_rig_has_the_papers_56_degrees_of_freedom(rig: Rig) -> None:
+    assert rig.num_dof == 56
+    knee = rig.role("shin_l")
+    assert np.allclose(rig.lo[knee], [0, 0, 0]) and np.allclose(rig.hi[knee], [2.0, 0, 0])
+
+
+# (solver, share of effectors that must be within 1 mm): the analytic solver reaches
+# every reachable target; plain DLS, starting far away, can stall against a limit
+@pytest.mark.parametrize(("name", "share"), [
+    pytest.param("analytic", 1.0, marks=pytest.mark.xfail(
+        strict=True, reason="open defect: ~1% of random poses stall above 1 mm (issue 2)")),
+    ("analytic", 0.95), ("dls", 0.9)])
+def test_reachable_targets_are_reached_within_1mm(rig: Rig, name: str, share: float) -> None:
+    q = random_poses(rig, 40, 0.2, seed=1)
+    root = np.tile([0.3, 0.0, -0.2], (40, 1))
+    targets = targets_of(rig, q, root)
+    solver = Solver(rig, name, SolverOptions(max_iterations=50))
+    state = PoseBatch.canonical(rig, 40)
+    for _ in range(3):  # warm-started frames converge on a still target
+        solver.solve(targets, state)
+    pos, rot = effector_errors(rig, state, targets)
+    assert np.median(pos) < 1e-4
+    assert np.mean(pos < 1e-3) >= share, f"{np.mean(pos < 1e-3):.2f} of effectors within 1 mm"
+    assert np.mean(rot < 1.0) >= share
+
+
+def test_canonical_targets_are_solved_exactly_by_the_analytic_stage(rig: Rig) -> None:
+    q = PoseBatch.canonical(rig, 1).rotations
+    targets = targets_of(rig, q, np.zeros((1, 3)))
+    state = PoseBatch.canonical(rig, 1)
+    Solver(rig, "analytic", SolverOptions(max_iterations=0)).solve(targets, state)
+    pos, rot = effector_errors(rig, state, targets)
+    assert pos.max() < 1e-6 and rot.max() < 1e-4
+
+
+@pytest.mark.parametrize("name", SOLVERS)
+def test_joint_limits_hold_even_for_unreachable_targets(rig: Rig, name: str) -> None:
+    q = random_poses(rig, 20, 1.0, seed=2)
+    targets = targets_of(rig, q, np.zeros((20, 3)))
+    rng = np.random.default_rng(3)
+    targets[..., :3] += rng.normal(0.0, 0.3, targets[..., :3].shape)  # far off
+    state = PoseBatch.canonical(rig, 20)
+    Solver(rig, name, SolverOptions(max_iterations=10)).solve(targets, state)
+    assert within_limits(rig, state.rotations).all()
+    assert np.all(np.isfinite(state.rotations)) and np.all(np.isfinite(state.root))
+
+
+@pytest.mark.parametrize("name", SOLVERS)
+def test_a_batch_gives_the_same_result_as_each_avatar_alone(rig: Rig, name: str) -> None:
+    q = random_poses(rig, 6, 0.3, seed=4)
+    targets = targets_of(rig, q, np.zeros((6, 3)))
+    solver = Solver(rig, name, SolverOptions(max_iterations=5))
+    batch = PoseBatch.canonical(rig, 6)
+    solver.solve(targets, batch)
+    for b in range(6):
+        one = PoseBatch.canonical(rig, 1)
+        solver.solve(targets[b: b + 1], one)
+        assert np.array_equal(one.rotations[0], batch.rotations[b])
+        assert np.array_equal(one.root[0], batch.root[b])
+
+
+def test_the_pelvis_follows_its_target_exactly(rig: Rig) -> None:
+    q = random_poses(rig, 5, 0.5, seed=5)
+    root = np.random.default_rng(6).normal(0, 1, (5, 3))
+    targets = targets_of(rig, q, root)
+    for name in SOLVERS:
+        state = PoseBatch.canonical(rig, 5)
+        Solver(rig, name, SolverOptions(max_iterations=1)).solve(targets, state)
+        pos, rot = effector_errors(rig, state, targets)
+        assert pos[:, 1].max() < 1e-9 and rot[:, 1].max() < 1e-5
+
+
+def test_unknown_solver_is_refused(rig: Rig) -> None:
+    with pytest.raises(ValueError, match="unknown solver"):
+        Solver(rig, "magic")
