@@ -87,8 +87,3 @@ def spec_for(role: str) -> JointSpec:
     """The spec of a role such as "thigh_l", "spine" or "head"."""
     return JOINTS[role[:-2] if role.endswith(("_l", "_r")) else role]
 
-
-def paper_dof_count(role_counts: dict[str, int]) -> int:
-    """Total degrees of freedom for a rig with the given number of joints per base role
-    (the paper's MakeHuman rig: 56)."""
-    return sum(len(JOINTS[r].dof) * n for r, n in role_counts.items())

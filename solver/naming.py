@@ -12,9 +12,6 @@ from __future__ import annotations
 
 from solver.skeleton import Skeleton, SkeletonError
 
-SIDES = ("l", "r")
-LIMB_ROLES = ("clavicle", "upperarm", "forearm", "hand", "thigh", "shin", "foot", "toes")
-SINGLE_ROLES = ("pelvis", "chest", "head", *tuple(f"{r}_{s}" for r in LIMB_ROLES for s in SIDES))
 CHAIN_ROLES = ("spine", "neck")  # one or more joints each, root-most first
 
 

@@ -29,7 +29,6 @@ from solver.skeleton import Skeleton, SkeletonError
 
 # The six driven bones, in the order of every targets array: (B, 6, 7) = pos + quat
 EFFECTORS = ("head", "pelvis", "hand_l", "hand_r", "foot_l", "foot_r")
-HEAD, PELVIS, HAND_L, HAND_R, FOOT_L, FOOT_R = range(6)
 
 # the child role that gives each role's bone direction
 _BONE_CHILD = {"clavicle": "upperarm", "upperarm": "forearm", "forearm": "hand",

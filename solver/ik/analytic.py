@@ -53,6 +53,21 @@ def _rotate_global(parents, q, gq, j, rot, t4a, t4b):
 
 
 @njit(cache=True)
+def _turn_by_share(parents, q, gq, pre, post, lo, hi, j, rot, share, t4a, t4b):
+    """Turn joint j by `share` of the world rotation `rot` (changed in place), within
+    its limits."""
+    if rot[3] < 0.0:
+        rot[:] = -rot
+    sa = math.sqrt(rot[0] ** 2 + rot[1] ** 2 + rot[2] ** 2)
+    if sa < 1e-12:
+        return
+    angle = 2.0 * math.atan2(sa, rot[3]) * share
+    qaxis_angle(rot[0] / sa, rot[1] / sa, rot[2] / sa, angle, rot)
+    _rotate_global(parents, q, gq, j, rot, t4a, t4b)
+    clamp_joint(q[j], pre[j], post[j], lo[j], hi[j], t4a, t4b)
+
+
+@njit(cache=True)
 def solve_spine(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, chain, n,
                 target):
     head = chain[n - 1]
@@ -99,16 +114,8 @@ def solve_spine(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, chain, n,
                 r1[d] = gp[head, d] - gp[j, d]
                 r2[d] = target[d] - gp[j, d]
             qbetween(r1, r2, rot)
-            share = 1.0 / (nb - i)
-            if rot[3] < 0.0:
-                rot[:] = -rot
-            sa = math.sqrt(rot[0] ** 2 + rot[1] ** 2 + rot[2] ** 2)
-            if sa < 1e-12:
-                continue
-            angle = 2.0 * math.atan2(sa, rot[3]) * share
-            qaxis_angle(rot[0] / sa, rot[1] / sa, rot[2] / sa, angle, rot)
-            _rotate_global(parents, q, gq, j, rot, t4a, t4b)
-            clamp_joint(q[j], pre[j], post[j], lo[j], hi[j], t4a, t4b)
+            _turn_by_share(parents, q, gq, pre, post, lo, hi, j, rot, 1.0 / (nb - i),
+                           t4a, t4b)
             fk_joints(parents, offsets, q, gq, gp, chain[i:], n - i)
     set_effector_rotation(parents, q, gq, pre, post, lo, hi, head, target)
 
@@ -320,14 +327,7 @@ def aim_clavicle(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, clav, up
     for d in range(3):
         t[d] = target[d] - gp[upper, d]
     qbetween(a0, t, rot)
-    if rot[3] < 0.0:
-        rot[:] = -rot
-    sa = math.sqrt(rot[0] ** 2 + rot[1] ** 2 + rot[2] ** 2)
-    if sa > 1e-12:
-        angle = 2.0 * math.atan2(sa, rot[3]) * share
-        qaxis_angle(rot[0] / sa, rot[1] / sa, rot[2] / sa, angle, rot)
-        _rotate_global(parents, q, gq, clav, rot, t4a, t4b)
-        clamp_joint(q[clav], pre[clav], post[clav], lo[clav], hi[clav], t4a, t4b)
+    _turn_by_share(parents, q, gq, pre, post, lo, hi, clav, rot, share, t4a, t4b)
     fk_joints(parents, offsets, q, gq, gp, chain1, 2)
 
 
