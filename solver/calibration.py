@@ -24,12 +24,15 @@ from solver import rotations as R
 from solver.motion import DRIVING_DEVICES
 from solver.rig import EFFECTORS, Rig, global_pose
 
-# device -> candidate bones (roles); the nearest candidate at calibration wins
+# device -> candidate bones (roles); the nearest candidate at calibration wins. A forearm
+# tracker is strapped to the forearm, whatever the template's elbow says: in the recordings
+# it keeps its distance to the wrist (std 6-11 mm) while the nearest-bone rule put it on the
+# upper arm in 7 of 10 files (model elbow beyond the real one) and lost the elbow's bend.
 DEVICE_BONES: dict[str, tuple[str, ...]] = {
     "head": ("head",), "hip": ("pelvis",),
     "left_hand": ("hand_l",), "right_hand": ("hand_r",),
     "left_foot": ("foot_l",), "right_foot": ("foot_r",),
-    "left_forearm": ("forearm_l", "upperarm_l"), "right_forearm": ("forearm_r", "upperarm_r"),
+    "left_forearm": ("forearm_l",), "right_forearm": ("forearm_r",),
     "left_knee": ("thigh_l", "shin_l"), "right_knee": ("thigh_r", "shin_r"),
 }
 # driving device of each effector, in rig.EFFECTORS order
