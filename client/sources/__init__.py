@@ -1,0 +1,38 @@
+"""Pose sources for the player: OpenVR hardware, or a recording replayed in real time.
+
+``open_source`` turns the ``--source`` argument of ``posecast play`` into a source.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from client.sources.base import ROLES, DeviceSample, PoseSource, SourceError, now
+
+__all__ = ["ROLES", "SPEC_FORMS", "DeviceSample", "PoseSource", "SourceError", "now",
+           "open_source"]
+
+SPEC_FORMS = ("openvr", "vive:FILE", "bvh:FILE")
+
+
+def open_source(spec: str, config: Path | None = None, loop: bool = False) -> PoseSource:
+    """The source a spec names: ``openvr`` (live SteamVR devices; ``config``: a TOML file
+    of serial-number roles), ``vive:FILE`` (a Vive recording) or ``bvh:FILE`` (simulated
+    trackers from motion capture). ``loop`` replays a file source forever."""
+    kind, sep, path = spec.partition(":")  # only the first colon: "vive:C:\\rec.csv" works
+    if kind == "openvr" and not sep:
+        # imported here: the native OpenVR library loads only for those who ask for it
+        try:
+            from client.sources.openvr_source import OpenVRSource
+        except (ImportError, OSError) as err:
+            raise SourceError(f"the openvr package cannot load: {err}") from None
+        return OpenVRSource(config)
+    if kind in ("vive", "bvh") and path:
+        if config is not None:
+            raise SourceError(f"a config file is for the openvr source, not {kind}:FILE")
+        if kind == "vive":
+            from client.sources.vive_source import ViveFileSource
+            return ViveFileSource(path, loop=loop)
+        from client.sources.bvh_source import BvhSource
+        return BvhSource(path, loop=loop)
+    raise SourceError(f"unknown pose source {spec!r}: use one of {', '.join(SPEC_FORMS)}")

@@ -1,0 +1,54 @@
+"""What every pose source gives the player: device poses sampled at a known instant.
+
+A source is anything that yields the poses of the player's tracked devices (headset,
+controllers, trackers) by role: OpenVR on a real rig, a Vive recording or a BVH file
+replayed in real time. The player loop paces itself at ``rate_hz`` and calls ``read``;
+the capture time is taken when the pose is read, on this process's ``now()`` clock.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+# device roles, as the protocol and DESIGN.md spell them
+ROLES = ("head", "hip", "left_hand", "right_hand", "left_forearm", "right_forearm",
+         "left_foot", "right_foot", "left_knee", "right_knee")
+
+
+def now() -> float:
+    """The client's clock, seconds (monotonic; offsets to the server clock come from pings)."""
+    return time.perf_counter()
+
+
+@dataclass(frozen=True)
+class DeviceSample:
+    """Poses of the devices seen at one instant (metres, +y up; quaternions x, y, z, w)."""
+
+    t_capture: float  # now() when the poses were read
+    roles: tuple[str, ...]  # subset of ROLES, in the order of the arrays
+    positions: NDArray[np.float64]  # (D, 3)
+    rotations: NDArray[np.float64]  # (D, 4)
+
+
+class SourceError(RuntimeError):
+    """A source that cannot start (no SteamVR, unreadable file): one clear line for the user."""
+
+
+class PoseSource(Protocol):
+    rate_hz: float  # how often the player should read
+
+    def calibration(self) -> DeviceSample:
+        """The T-pose sample to calibrate the avatar with (standing, arms sideways)."""
+        ...
+
+    def read(self) -> DeviceSample | None:
+        """The poses now; None when the source has ended (a recording not looped)."""
+        ...
+
+    def close(self) -> None:
+        ...

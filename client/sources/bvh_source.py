@@ -1,0 +1,132 @@
+"""Simulated trackers from a motion-capture (BVH) file: a player without VR hardware.
+
+Devices sit on the performer's joints as the trackers of ``posecast eval`` do
+(``solver.evaluation.evaluate_bvh``): the hip on the pelvis joint, hands and feet on their
+joints, each at that joint's global pose; a knee device on the knee (shin joint) and a
+forearm device halfway along the forearm, where a strap holds it. The head device is a
+headset: rigidly on the head joint but at the eyes (``calibrate``'s prior
+``EYE_FROM_HEAD_JOINT``), because calibration sizes the avatar by putting its eyes at the
+HMD; a device on the head joint itself made the built-in walker's avatar 4% too small and
+its hanging arms up to 8 cm short of the hands.
+
+The calibration sample is the performer's T-pose: the skeleton's canonical pose (arms
+sideways, legs straight; ``solver.rig``) turned to the heading of the first motion frame
+and standing where the first frame stands. Floors: the clip is shifted so that the lowest
+joint of its first motion frame is at y = 0, and the T-pose's lowest joint likewise: the
+convention of ``solver.calibration.calibrate``, which stands the avatar's lowest joint on
+y = 0. Joints are inside the feet, so a file whose floor is the sole (Bandai: toes 4.2 cm
+up) moves down by those centimetres, every frame alike.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from client.sources.base import ROLES, DeviceSample, SourceError, now
+from solver import rotations as R
+from solver.calibration import EFFECTOR_DEVICES, EYE_FROM_HEAD_JOINT
+from solver.evaluation import _reference_pose
+from solver.fk import forward_kinematics
+from solver.readers.bvh import read_bvh
+from solver.rig import EFFECTORS, Rig, build_rig, global_pose
+
+Array = NDArray[np.float64]
+
+# device -> (joint role it is on, joint role it lies toward or None): eval's trackers plus
+# forearms and knees
+DEVICE_JOINTS: dict[str, tuple[str, str | None]] = {
+    **{dev: (joint, None) for dev, joint in zip(EFFECTOR_DEVICES, EFFECTORS, strict=True)},
+    "left_forearm": ("forearm_l", "hand_l"), "right_forearm": ("forearm_r", "hand_r"),
+    "left_knee": ("shin_l", None), "right_knee": ("shin_r", None),
+}
+FOREARM_AT = 0.5  # fraction of the way from elbow to wrist
+
+
+class BvhSource:
+    """Simulated trackers on a BVH performer; see the module docstring."""
+
+    def __init__(self, path: str | Path, loop: bool = False) -> None:
+        try:
+            motion = read_bvh(path)  # a FormatError (file, line, what) propagates as it is
+        except OSError as err:
+            raise SourceError(f"{path}: cannot read the motion file: {err.strerror}") from None
+        frames = slice(motion.first_frame, motion.num_frames)
+        rot, trans = motion.rotations[frames], motion.translations[frames]
+        if rot.shape[0] < 1:
+            raise SourceError(f"{path}: no motion frames after the bind pose")
+        # the performer as evaluate_bvh sees them: first motion frame's bones, canonical rig
+        self.skeleton = motion.skeleton.with_offsets(trans[0])
+        self.rig = build_rig(self.skeleton, _reference_pose(motion))
+        self._body = sorted({j for joints in self.rig.roles.values() for j in joints})
+        canon_q, canon_p = global_pose(self.skeleton, self.rig.canonical)
+        # canonical pose: body axes = world axes, so the eye offset is in world coordinates
+        head = self.rig.role("head")
+        self.hmd_offset = R.rotate(R.conjugate(canon_q[head]), EYE_FROM_HEAD_JOINT)
+        gq, gp = forward_kinematics(self.skeleton, rot, trans[:, 0], trans)
+        gp[..., 1] -= gp[0, self._body, 1].min()  # the first frame stands on y = 0
+        self.positions, self.rotations = self._devices(gq, gp)
+        tq, tp = self._place_tpose(canon_q, canon_p, gp[0])
+        self.tpose_positions, self.tpose_rotations = (a[0] for a in self._devices(tq, tp))
+        self.rate_hz = float(motion.fps)
+        self.loop = loop
+        self.next_frame = 0
+
+    def _devices(self, gq: Array, gp: Array) -> tuple[Array, Array]:
+        """Device positions (F, D, 3) and rotations (F, D, 4), ROLES order, from global
+        joint rotations (F, J, 4) and positions (F, J, 3)."""
+        pos = np.empty((gq.shape[0], len(ROLES), 3))
+        rot = np.empty((gq.shape[0], len(ROLES), 4))
+        for d, name in enumerate(ROLES):
+            joint, toward = DEVICE_JOINTS[name]
+            j = self.rig.role(joint)
+            pos[:, d] = gp[:, j]
+            if toward is not None:
+                pos[:, d] += FOREARM_AT * (gp[:, self.rig.role(toward)] - gp[:, j])
+            if name == "head":
+                pos[:, d] += R.rotate(gq[:, j], self.hmd_offset)
+            rot[:, d] = gq[:, j]
+        return pos, rot
+
+    def _place_tpose(self, cq: Array, cp: Array, first: Array) -> tuple[Array, Array]:
+        """The canonical pose's global joint poses (1, J, 4/3), turned to the first frame's
+        heading, its pelvis over the first frame's, its lowest joint on y = 0."""
+        yaw = _heading(self.rig, first)
+        cq, cp = R.mul(yaw, cq), R.rotate(yaw, cp)
+        pelvis = self.rig.role("pelvis")
+        cp += np.array([first[pelvis, 0] - cp[pelvis, 0], -cp[self._body, 1].min(),
+                        first[pelvis, 2] - cp[pelvis, 2]])
+        return cq[None], cp[None]
+
+    @property
+    def num_frames(self) -> int:
+        """Motion frames (a file's bind-pose frame excluded)."""
+        return int(self.positions.shape[0])
+
+    def calibration(self) -> DeviceSample:
+        return DeviceSample(now(), ROLES, self.tpose_positions.copy(),
+                            self.tpose_rotations.copy())
+
+    def read(self) -> DeviceSample | None:
+        if self.next_frame >= self.num_frames:
+            if not self.loop:
+                return None
+            self.next_frame = 0
+        f = self.next_frame
+        self.next_frame += 1
+        return DeviceSample(now(), ROLES, self.positions[f].copy(), self.rotations[f].copy())
+
+    def close(self) -> None:
+        pass
+
+
+def _heading(rig: Rig, gp: Array) -> Array:
+    """Yaw (quaternion) turning the canonical facing (+z, left +x) to a pose's facing,
+    from the pose's global joint positions (J, 3)."""
+    left = gp[rig.role("thigh_l")] - gp[rig.role("thigh_r")]
+    left[1] = 0.0
+    x = R.normalize_vec(left)
+    y = np.array([0.0, 1.0, 0.0])
+    return R.from_matrix(np.stack([x, y, np.cross(x, y)], axis=1))
