@@ -4,7 +4,9 @@
   only; predict every recorded device (forearms and knees too, which the solver never
   sees) through the mounts fixed at calibration; error = distance to the recorded device.
 - BVH: the performer's own skeleton is the avatar; the head, hips, hand and foot joints
-  of the file are 6-DoF trackers; every joint is scored against the file.
+  of the file are 6-DoF trackers; every joint of the body is scored against the file. A
+  static root above the pelvis (Bandai's joint_Root) is the world frame, not the body:
+  the avatar is rooted at the pelvis instead (``drop_static_root``).
 
 Frames are solved one at a time in order, each warm-started from the last, exactly as
 the server does live. Frame 0 of a Vive file (the calibration pose) is not scored.
@@ -23,7 +25,14 @@ from solver.calibration import calibrate
 from solver.fk import forward_kinematics
 from solver.ik import PoseBatch, Solver, SolverOptions
 from solver.metrics import lag_frames, position_error_mm, rotation_error_deg
-from solver.motion import DRIVING_DEVICES, HELDOUT_DEVICES, Motion, ViveRecording
+from solver.motion import (
+    DRIVING_DEVICES,
+    HELDOUT_DEVICES,
+    Motion,
+    ViveRecording,
+    drop_static_root,
+)
+from solver.naming import roles as role_map
 from solver.readers.gltf import load_makehuman
 from solver.rig import Rig, build_rig
 from solver.smoothing import SlerpSmoother
@@ -125,9 +134,7 @@ def evaluate_vive(rec: ViveRecording, options: EvalOptions = EvalOptions(),
 def _reference_pose(motion: Motion) -> NDArray[np.float64] | None:
     """The rest pose is the canonical pose's reference when it stands upright (+y);
     otherwise (Bandai's rest pose lies along +x) the first motion frame is."""
-    from solver.naming import roles
-
-    r = roles(motion.skeleton)
+    r = role_map(motion.skeleton)
     rest = motion.skeleton.rest_positions()
     up = rest[r["head"][0]] - rest[r["pelvis"][0]]
     if up[1] > 0.8 * np.linalg.norm(up):
@@ -137,6 +144,9 @@ def _reference_pose(motion: Motion) -> NDArray[np.float64] | None:
 
 def evaluate_bvh(motion: Motion, options: EvalOptions = EvalOptions(),
                  progress: Progress | None = None) -> ClipResult:
+    if role_map(motion.skeleton)["pelvis"][0] != 0:
+        # the avatar is rooted at the body: a static root above the pelvis is the world
+        motion = drop_static_root(motion)
     frames = slice(motion.first_frame, motion.num_frames)
     rot = motion.rotations[frames]
     trans = motion.translations[frames]

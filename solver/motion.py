@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from solver import rotations as R
 from solver.skeleton import Skeleton
 
 # Vive device names, as DESIGN.md's eval contract spells them
@@ -32,6 +33,31 @@ class Motion:
     @property
     def num_frames(self) -> int:
         return int(self.rotations.shape[0])
+
+
+def drop_static_root(motion: Motion) -> Motion:
+    """The motion rooted at the root's only child, when the root never moves.
+
+    Such a root (Bandai's joint_Root, at the origin in every frame) is the world frame,
+    not part of the body, which walks away from it. An avatar is a root position, joint
+    rotations and fixed bones, so it follows the body only if the body's top joint (Hips)
+    is its root; that joint's per-frame translation, taken through the static root,
+    becomes its global position. Any other motion comes back unchanged.
+    """
+    sk, rot, trans = motion.skeleton, motion.rotations, motion.translations
+    static = bool(np.all(rot[:, 0] == rot[0, 0]) and np.all(trans[:, 0] == trans[0, 0]))
+    if not static or sk.children(0) != [1]:
+        return motion
+    q0, t0 = rot[0, 0], trans[0, 0]
+    rot = rot[:, 1:].copy()
+    trans = trans[:, 1:].copy()
+    rot[:, 0] = R.mul(q0, rot[:, 0])
+    trans[:, 0] = t0 + R.rotate(q0, trans[:, 0])
+    first = motion.first_frame
+    # as read_bvh does: the offsets are the first motion frame's translations
+    skeleton = Skeleton(sk.names[1:], sk.parents[1:] - 1, trans[first], sk.tips[1:])
+    return Motion(skeleton=skeleton, rotations=rot, translations=trans, fps=motion.fps,
+                  source=motion.source, first_frame=first)
 
 
 @dataclass(frozen=True, eq=False)
