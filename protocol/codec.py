@@ -1,0 +1,80 @@
+"""Bytes <-> messages: msgpack maps, float arrays as packed little-endian bin.
+
+A message is a msgpack map of its fields with a string ``type``; nested records (the
+avatars of a roster, the frames of a batch) are maps without one. Float arrays are msgpack
+bin (tracker poses and skeleton offsets float64, an avatar's root float32), joint rotations
+5 bytes each (protocol.quantize). ``decode`` checks the size before parsing and raises
+only ``ProtocolError``, whatever the bytes.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import msgpack
+from pydantic import BaseModel, ValidationError
+
+from protocol.errors import ErrorCode, ProtocolError
+from protocol.messages import (
+    CLIENT_MESSAGES,
+    MESSAGE_TYPES,
+    ClientMessage,
+    Message,
+)
+from protocol.validation import MAX_CLIENT_MESSAGE_BYTES, MAX_MESSAGE_BYTES, protocol_error
+
+_WIRE = {"wire": True}  # validation context: arrays must arrive as bytes
+_CLIENT_TYPES = frozenset(cls.model_fields["type"].default for cls in CLIENT_MESSAGES)
+
+
+def encode(message: BaseModel) -> bytes:
+    """A message -> msgpack bytes."""
+    return msgpack.packb(message.model_dump(), use_bin_type=True)
+
+
+def decode(data: bytes | bytearray | memoryview | str, *,
+           max_bytes: int = MAX_MESSAGE_BYTES) -> Message:
+    """msgpack bytes -> a validated message. Raises ProtocolError and nothing else."""
+    return _decode(data, max_bytes, None)  # type: ignore[return-value]
+
+
+def decode_client(data: bytes | bytearray | memoryview | str) -> ClientMessage:
+    """What a server reads: a client message, at most MAX_CLIENT_MESSAGE_BYTES."""
+    return _decode(data, MAX_CLIENT_MESSAGE_BYTES, _CLIENT_TYPES)  # type: ignore[return-value]
+
+
+def _decode(data: Any, max_bytes: int, allowed: frozenset[str] | None) -> BaseModel:
+    if isinstance(data, str):  # websockets hands a text frame over as str
+        raise ProtocolError(ErrorCode.NOT_MSGPACK,
+                            "got a text frame; messages are binary msgpack")
+    if not isinstance(data, bytes | bytearray | memoryview):
+        raise ProtocolError(ErrorCode.NOT_MSGPACK,
+                            f"expected bytes, got {type(data).__name__}")
+    if len(data) > max_bytes:
+        raise ProtocolError(ErrorCode.TOO_LARGE,
+                            f"message of {len(data)} bytes; the limit is {max_bytes}")
+    try:
+        obj = msgpack.unpackb(data, raw=False, strict_map_key=True)
+    except Exception as exc:  # msgpack raises several types; any of them means "not msgpack"
+        why = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+        raise ProtocolError(ErrorCode.NOT_MSGPACK, f"not a msgpack message ({why})") from None
+    if not isinstance(obj, dict) or "type" not in obj:
+        got = "a map without 'type'" if isinstance(obj, dict) else type(obj).__name__
+        raise ProtocolError(ErrorCode.MALFORMED,
+                            f"expected a map with a string 'type', got {got}")
+    kind = obj.get("type")
+    cls = MESSAGE_TYPES.get(kind) if isinstance(kind, str) else None
+    if cls is None or (allowed is not None and kind not in allowed):
+        known = sorted(MESSAGE_TYPES if allowed is None else allowed)
+        raise ProtocolError(ErrorCode.UNKNOWN_TYPE,
+                            f"type: unknown message type {_short(kind)}; expected one of "
+                            f"{', '.join(known)}")
+    try:
+        return cls.model_validate(obj, context=_WIRE)
+    except ValidationError as exc:
+        raise protocol_error(exc, kind) from None  # type: ignore[arg-type]
+
+
+def _short(value: object) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:60] + "..."

@@ -1,0 +1,204 @@
+"""Strict validation: size limits, field types, and the array checks shared by the messages.
+
+The limits bound what one peer can make another allocate or compute. Array checks turn
+packed little-endian bytes (or, when a message is built in Python, array-likes) into
+read-only float64 numpy arrays and reject NaN, infinities, absurd positions and
+non-unit quaternions, naming the row. ``protocol_error`` turns a pydantic
+``ValidationError`` into the one ``ProtocolError`` with the field path and the value.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Annotated, Any
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import AfterValidator, Field, Strict, ValidationError, ValidationInfo
+
+from protocol.errors import ErrorCode, ProtocolError
+
+# --------------------------------------------------------------------------- limits
+# Any message. The largest legitimate one is a full roster: ~2.5 KB per 60-joint avatar,
+# so 1 MiB holds a room of a few hundred avatars.
+MAX_MESSAGE_BYTES = 1 << 20
+# What a server accepts from a client (hello, tracker frame, calibrate, ping, leave):
+# a 10-device tracker frame is ~700 bytes, a hello with the longest token ~700 bytes.
+MAX_CLIENT_MESSAGE_BYTES = 4096
+MAX_JOINTS = 256  # the MakeHuman rig has 53, large BVH skeletons ~100
+MAX_AVATARS = 1024  # per roster or batch message
+MAX_NAME_CHARS = 64  # room, display and joint names
+MAX_TOKEN_CHARS = 512
+MAX_TEXT_CHARS = 1024  # error messages, leave reasons
+MAX_POSITION_M = 1000.0  # tracked spaces are metres across; 1e300 would overflow the solver
+MAX_RATE_HZ = 1000.0
+QUAT_NORM_TOLERANCE = 1e-3  # |norm - 1| accepted, then normalised
+MAX_INT = 2**63 - 1  # ids and sequence numbers fit an int64
+
+# --------------------------------------------------------------------------- scalar types
+# Strict: msgpack gives real ints, floats and strings; never coerce "12" or True.
+# (A strict float still accepts an int: some msgpack encoders write 0.0 as 0.)
+Int = Annotated[int, Strict(), Field(ge=0, le=MAX_INT)]
+Time = Annotated[float, Strict(), Field(allow_inf_nan=False)]
+
+
+def _printable(value: str) -> str:
+    if not value.isprintable():
+        raise ValueError(f"{value!r} contains control characters")
+    return value
+
+
+Name = Annotated[str, Strict(), Field(min_length=1, max_length=MAX_NAME_CHARS),
+                 AfterValidator(_printable)]
+# room names end up in URLs, command lines and logs: keep them plain
+RoomName = Annotated[str, Strict(), Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")]
+Token = Annotated[str, Strict(), Field(min_length=1, max_length=MAX_TOKEN_CHARS)]
+Text = Annotated[str, Strict(), Field(max_length=MAX_TEXT_CHARS)]
+RateHz = Annotated[float, Strict(), Field(gt=0.0, le=MAX_RATE_HZ, allow_inf_nan=False)]
+
+
+# --------------------------------------------------------------------------- arrays
+def is_wire(info: ValidationInfo) -> bool:
+    """True while the codec validates decoded msgpack (arrays must then be bytes)."""
+    return isinstance(info.context, dict) and bool(info.context.get("wire"))
+
+
+def as_rows(value: Any, width: int, wire: bool, wire_dtype: str = "<f8",
+            ) -> NDArray[np.float64]:
+    """Packed little-endian bytes, or (in Python) an array-like -> float64 (n, width).
+
+    Only converts and checks the shape: the range checks below also catch NaN and
+    infinities (every comparison with NaN is false), so finiteness costs no extra pass.
+    """
+    if isinstance(value, bytes | bytearray | memoryview):
+        row_bytes = np.dtype(wire_dtype).itemsize * width
+        if len(value) % row_bytes:
+            raise ValueError(f"{len(value)} bytes is not a whole number of rows of "
+                             f"{width} x {wire_dtype} ({row_bytes} bytes)")
+        array = np.frombuffer(value, dtype=wire_dtype).reshape(-1, width)
+        return array if array.dtype == np.float64 else array.astype(np.float64)
+    if wire:
+        raise ValueError(f"expected packed {wire_dtype} bytes, got {type(value).__name__}")
+    if isinstance(value, str):
+        raise ValueError(f"expected an array of numbers, got str {value[:40]!r}")
+    try:
+        array = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"expected an array of numbers: {exc}") from None
+    if array.ndim == 1 and array.shape[0] == width:
+        array = array.reshape(1, width)
+    if array.ndim != 2 or array.shape[1] != width:
+        raise ValueError(f"expected shape (n, {width}), got {array.shape}")
+    return array
+
+
+_MAX_POSITION2 = MAX_POSITION_M**2
+# |norm - 1| <= tol is checked as |norm^2 - 1| <= 2 tol (the same to first order), which
+# needs no square root. Below _UNIT_EXACT we do not renormalise: normalising an already
+# normalised row can move it by an ulp, and decode(encode(m)) should give m back exactly.
+_NORM2_TOL = 2.0 * QUAT_NORM_TOLERANCE
+_UNIT_EXACT = 1e-12
+
+
+def check_positions(positions: NDArray[np.float64], labels: Sequence[str] | None = None,
+                    ) -> None:
+    """Finite and within MAX_POSITION_M of the origin; the error names the row."""
+    dist2 = np.einsum("ij,ij->i", positions, positions)
+    if dist2.max(initial=0.0) <= _MAX_POSITION2:  # False for NaN too
+        return
+    _check_finite(positions, labels, "position")
+    row = int(np.flatnonzero(dist2 > _MAX_POSITION2)[0])
+    raise ValueError(f"row {row}{_label(labels, row)} position {positions[row].tolist()} is "
+                     f"{math.hypot(*positions[row]):.6g} m from the origin; the limit is "
+                     f"{MAX_POSITION_M:g} m")
+
+
+def unit_quaternions(q: NDArray[np.float64], labels: Sequence[str] | None = None,
+                     ) -> NDArray[np.float64]:
+    """(n, 4) x y z w within QUAT_NORM_TOLERANCE of unit norm -> normalised."""
+    norm2 = np.einsum("ij,ij->i", q, q)
+    deviation = np.abs(norm2 - 1.0).max(initial=0.0)
+    if not deviation <= _NORM2_TOL:  # NaN lands here too
+        _explain_quaternions(q, norm2, labels)
+    return q / np.sqrt(norm2)[:, None] if deviation > _UNIT_EXACT else q
+
+
+def _explain_quaternions(q: NDArray[np.float64], norm2: NDArray[np.float64],
+                         labels: Sequence[str] | None) -> None:
+    _check_finite(q, labels, "quaternion")
+    row = int(np.argmax(np.abs(norm2 - 1.0) > _NORM2_TOL))
+    raise ValueError(f"row {row}{_label(labels, row)} quaternion {q[row].tolist()} has "
+                     f"norm {np.sqrt(norm2[row]):.6g}; a unit quaternion (x, y, z, w) "
+                     f"within {QUAT_NORM_TOLERANCE:g} is required")
+
+
+# squared position norm and squared quaternion norm of each (D, 7) pose row, in one call.
+# (einsum, unlike ufuncs and matmul, raises no RuntimeWarning on NaN or overflow, so bad
+# input costs no warning spam and no errstate context on the fast path)
+_POSE_NORMS = np.array([[1.0, 0.0]] * 3 + [[0.0, 1.0]] * 4)
+_POSE_CENTER = np.array([0.0, 1.0])
+
+
+def device_poses(poses: NDArray[np.float64], labels: Sequence[str] | None = None,
+                 ) -> NDArray[np.float64]:
+    """(D, 7) position + quaternion rows -> a new array with normalised quaternions.
+
+    The hot path of a server (every tracker frame): both checks in a few numpy calls;
+    on failure the row-by-row checks explain what was wrong.
+    """
+    norms2 = np.einsum("ij,ij,jk->ik", poses, poses, _POSE_NORMS)
+    worst = np.abs(norms2 - _POSE_CENTER).max(axis=0, initial=0.0)  # NaN propagates
+    if not (worst[0] <= _MAX_POSITION2 and worst[1] <= _NORM2_TOL):  # so lands here
+        check_positions(poses[:, :3], labels)
+        _explain_quaternions(poses[:, 3:], norms2[:, 1], labels)
+    out = poses.copy()  # the wire buffer is read-only, and callers keep their arrays
+    if worst[1] > _UNIT_EXACT:
+        out[:, 3:] /= np.sqrt(norms2[:, 1:])
+    return out
+
+
+def _check_finite(array: NDArray[np.float64], labels: Sequence[str] | None, what: str,
+                  ) -> None:
+    """Raise naming the first NaN or infinity: 'row 2 (left_hand) quaternion[1] is nan'."""
+    if np.isfinite(array).all():
+        return
+    row, col = (int(i) for i in np.argwhere(~np.isfinite(array))[0])
+    raise ValueError(f"row {row}{_label(labels, row)} {what}[{col}] is "
+                     f"{float(array[row, col])!r}: numbers must be finite")
+
+
+def _label(labels: Sequence[str] | None, row: int) -> str:
+    return f" ({labels[row]})" if labels is not None and row < len(labels) else ""
+
+
+def readonly(array: NDArray[np.float64]) -> NDArray[np.float64]:
+    array.flags.writeable = False
+    return array
+
+
+# --------------------------------------------------------------------------- errors
+_CODES = {code.value for code in ErrorCode}
+
+
+def protocol_error(error: ValidationError, message_type: str) -> ProtocolError:
+    """The first error of a pydantic ValidationError, as 'type.field[i].sub: why (got x)'."""
+    details = error.errors(include_url=False)
+    first = details[0]
+    path = message_type
+    for part in first["loc"]:
+        path += f"[{part}]" if isinstance(part, int) else f".{part}"
+    why = str(first["msg"]).removeprefix("Value error, ")
+    kind = str(first["type"])
+    # our own checks put the value in the message; pydantic's own ones get it appended
+    if kind not in ("value_error", "missing") and kind not in _CODES:
+        why += f" (got {_short_repr(first.get('input'))})"
+    if len(details) > 1:
+        why += f" [and {len(details) - 1} more error(s)]"
+    code = kind if kind in _CODES else ErrorCode.INVALID
+    return ProtocolError(code, f"{path}: {why}")
+
+
+def _short_repr(value: object, limit: int = 80) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit] + "..."

@@ -1,0 +1,248 @@
+"""`posecast serve`: the asyncio websockets server of a session.
+
+One connection = one handler task. The first message must be a Hello; a player then owns
+one avatar (kept across reconnects with the same token), a spectator only receives. Every
+message is decoded and validated by protocol/; a bad one is answered with an Error naming
+what was wrong, counted, and the connection carries on. Spectators receive through their
+own latest-wins outbox task, so a slow one never delays the room.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import logging
+import signal
+from collections.abc import Callable
+
+from websockets.asyncio.server import Server, ServerConnection, serve
+from websockets.exceptions import ConnectionClosed
+
+from protocol import (
+    PROTOCOL_VERSION,
+    Calibrate,
+    Error,
+    ErrorCode,
+    Hello,
+    Leave,
+    Ping,
+    Pong,
+    ProtocolError,
+    TrackerFrame,
+    Welcome,
+    decode_client,
+    encode,
+)
+from server.avatars import AvatarSolver
+from server.clock import now
+from server.metrics import Metrics
+from server.outbox import Outbox
+from server.room import Avatar, Delivery, Room, Spectator, send_deliveries
+from solver.readers.gltf import load_makehuman
+from solver.rig import Rig, build_rig
+
+log = logging.getLogger("posecast.server")
+
+HELLO_TIMEOUT = 5.0  # seconds a new connection has to say who it is
+RECONNECT_GRACE = 30.0  # seconds a disconnected player's avatar waits for its token
+# websockets' own frame limit: far above any valid message, so that an oversized one still
+# reaches protocol/ and gets a clear Error (TOO_LARGE) instead of a bare close
+WEBSOCKET_MAX_SIZE = 1 << 20
+
+
+class Session:
+    """All rooms of one server process."""
+
+    def __init__(self, rig: Rig | None = None, solver: str = "analytic",
+                 reconnect_grace: float = RECONNECT_GRACE) -> None:
+        self.rig = rig or build_rig(load_makehuman().skeleton)
+        self.solver_name = solver
+        self.reconnect_grace = reconnect_grace
+        self.rooms: dict[str, Room] = {}
+        self.metrics = Metrics()
+        self._ids = itertools.count(1)
+        self._owners: dict[int, ServerConnection] = {}  # avatar id -> its live connection
+
+    def room(self, name: str) -> Room:
+        if name not in self.rooms:  # rooms are created on first join
+            self.rooms[name] = Room(name, AvatarSolver(self.rig, self.solver_name),
+                                    self.metrics)
+        return self.rooms[name]
+
+    async def handle(self, ws: ServerConnection) -> None:
+        self.metrics.connections += 1
+        conn_id = next(self._ids)
+        try:
+            hello = await self._hello(ws)
+        except (ConnectionClosed, TimeoutError):
+            return
+        if hello is None:
+            return
+        room = self.room(hello.room)
+        if hello.role == "player":
+            await self._player(ws, conn_id, room, hello)
+        else:
+            await self._spectator(ws, conn_id, room, hello)
+        if room.empty:
+            self.rooms.pop(room.name, None)
+
+    async def _hello(self, ws: ServerConnection) -> Hello | None:
+        """The first message; anything else gets an Error and the connection is closed."""
+        data = await asyncio.wait_for(ws.recv(), HELLO_TIMEOUT)
+        try:
+            msg = decode_client(data)
+            if not isinstance(msg, Hello):
+                raise ProtocolError(ErrorCode.NOT_ALLOWED,
+                                    f"the first message must be hello, got {msg.type}")
+        except ProtocolError as err:
+            self.metrics.rejected[err.code] += 1
+            await ws.send(encode(Error(code=err.code, message=err.message)))
+            await ws.close(1008, err.code)
+            return None
+        return msg
+
+    # ------------------------------------------------------------------ players
+    async def _player(self, ws: ServerConnection, conn_id: int, room: Room,
+                      hello: Hello) -> None:
+        avatar = room.find_by_token(hello.token)
+        if avatar is None:
+            avatar = Avatar(next(self._ids), hello.display_name, hello.token)
+            room.avatars[avatar.avatar_id] = avatar
+        else:  # a reconnect: same avatar, same calibration; the old connection goes
+            old = self._owners.get(avatar.avatar_id)
+            if old is not None and old is not ws:
+                await old.close(1000, "reconnected elsewhere")
+        avatar.connected = True
+        self._owners[avatar.avatar_id] = ws
+        await ws.send(encode(Welcome(protocol_version=PROTOCOL_VERSION,
+                                     connection_id=conn_id, avatar_id=avatar.avatar_id,
+                                     server_time=now())))
+        try:
+            async for data in ws:
+                t_received = now()
+                try:
+                    msg = decode_client(data)
+                    if isinstance(msg, TrackerFrame):
+                        self.metrics.frames_received += 1
+                        if not room.is_calibrated(avatar.avatar_id):
+                            raise ProtocolError(ErrorCode.NOT_CALIBRATED,
+                                                "send a calibrate message (T-pose) before "
+                                                "tracker frames")
+                        room.submit(avatar.avatar_id, msg, t_received)
+                    elif isinstance(msg, Calibrate):
+                        room.calibrate(avatar, msg.roles, msg.poses)
+                    else:
+                        await self._common(ws, msg, t_received, "player")
+                except ProtocolError as err:
+                    await self._reject(ws, err)
+                except ValueError as err:  # the solver refused the poses (e.g. a device lost)
+                    await self._reject(ws, ProtocolError(ErrorCode.INVALID, str(err)))
+        except ConnectionClosed:
+            pass
+        finally:
+            if self._owners.get(avatar.avatar_id) is ws:
+                del self._owners[avatar.avatar_id]
+                avatar.connected = False
+                self._forget_later(room, avatar)
+
+    def _forget_later(self, room: Room, avatar: Avatar) -> None:
+        """Keep a disconnected player's avatar for a while in case it reconnects."""
+        def forget() -> None:
+            if not avatar.connected and room.avatars.get(avatar.avatar_id) is avatar:
+                room.remove_avatar(avatar.avatar_id)
+                if room.empty:
+                    self.rooms.pop(room.name, None)
+        if avatar.token is None or self.reconnect_grace <= 0:
+            forget()
+        else:
+            asyncio.get_running_loop().call_later(self.reconnect_grace, forget)
+
+    # ------------------------------------------------------------------ spectators
+    async def _spectator(self, ws: ServerConnection, conn_id: int, room: Room,
+                         hello: Hello) -> None:
+        async def send_bytes(data: bytes) -> None:
+            await ws.send(data)
+
+        async def send(deliveries: list[Delivery]) -> None:
+            await send_deliveries(send_bytes, deliveries)
+            self.metrics.frames_delivered += len(deliveries)
+
+        outbox: Outbox[Delivery] = Outbox(send, hello.max_rate_hz)
+        spectator = Spectator(outbox, send_bytes)
+        await ws.send(encode(Welcome(protocol_version=PROTOCOL_VERSION, connection_id=conn_id,
+                                     avatar_id=None, server_time=now())))
+        await ws.send(encode(room.roster()))
+        room.spectators[conn_id] = spectator
+        spectator.task = asyncio.get_running_loop().create_task(outbox.run())
+        try:
+            async for data in ws:
+                t_received = now()
+                try:
+                    msg = decode_client(data)
+                    if isinstance(msg, TrackerFrame | Calibrate):
+                        raise ProtocolError(ErrorCode.NOT_ALLOWED,
+                                            f"a spectator only receives; {msg.type} is for "
+                                            "players")
+                    await self._common(ws, msg, t_received, "spectator")
+                except ProtocolError as err:
+                    await self._reject(ws, err)
+        except ConnectionClosed:
+            pass
+        finally:
+            room.spectators.pop(conn_id, None)
+            self.metrics.frames_dropped += outbox.dropped
+            outbox.close()
+            spectator.task.cancel()
+
+    # ------------------------------------------------------------------ both
+    async def _common(self, ws: ServerConnection, msg: object, t_received: float,
+                      role: str) -> None:
+        if isinstance(msg, Ping):
+            await ws.send(encode(Pong(t0=msg.t0, t1=t_received, t2=now())))
+        elif isinstance(msg, Leave):
+            await ws.close(1000, "bye")
+        else:
+            kind = getattr(msg, "type", type(msg).__name__)
+            raise ProtocolError(ErrorCode.NOT_ALLOWED, f"{kind} is not for a {role} to send")
+
+    async def _reject(self, ws: ServerConnection, err: ProtocolError) -> None:
+        self.metrics.rejected[err.code] += 1
+        log.info("rejected %s: %s", err.code, err.message)
+        with contextlib.suppress(ConnectionClosed):
+            await ws.send(encode(Error(code=err.code, message=err.message)))
+
+
+async def run_server(host: str, port: int, session: Session | None = None,
+                     stop: asyncio.Event | None = None,
+                     ready: Callable[[int], None] | None = None,
+                     handle_signals: bool = False) -> Session:
+    """Serve until ``stop`` is set (or SIGINT/SIGTERM with ``handle_signals``), closing
+    every connection cleanly; ``ready(port)`` once listening (port 0 picks a free one)."""
+    session = session or Session()
+    stop = stop or asyncio.Event()
+    loop = asyncio.get_running_loop()
+    if handle_signals:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, stop.set)
+    server: Server
+    async with serve(session.handle, host, port, compression=None,
+                     max_size=WEBSOCKET_MAX_SIZE, max_queue=64) as server:
+        bound = next(iter(server.sockets)).getsockname()[1]
+        log.info("posecast server on ws://%s:%d", host, bound)
+        if ready is not None:
+            ready(bound)
+        await stop.wait()
+        server.close(close_connections=True)
+        await server.wait_closed()
+    return session
+
+
+def install_fast_loop() -> bool:
+    """uvloop when installed: a faster event loop for the same code."""
+    try:
+        import uvloop
+    except ImportError:
+        return False
+    asyncio.set_event_loop_policy(uvloop.EventLoopPolicy())
+    return True

@@ -1,0 +1,72 @@
+"""Latest-wins delivery to one connection, so a slow or stalled receiver delays no one.
+
+The room offers every solved batch to every spectator's outbox and moves on at once; the
+outbox keeps at most one pending frame per avatar (a newer frame replaces an unsent one,
+which is counted as dropped) and its own task sends whatever is pending when the socket
+is free, no faster than the receiver asked for. Memory per connection is bounded by the
+number of avatars, whatever the receiver does.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Awaitable, Callable
+from typing import Generic, TypeVar
+
+Frame = TypeVar("Frame")
+
+
+class Outbox(Generic[Frame]):
+    def __init__(self, send: Callable[[list[Frame]], Awaitable[None]],
+                 max_rate_hz: float | None = None) -> None:
+        self._send = send
+        self._min_interval = 1.0 / max_rate_hz if max_rate_hz else 0.0
+        self._pending: dict[int, Frame] = {}
+        self._wake = asyncio.Event()
+        self._closed = False
+        self.delivered = 0  # frames handed to the socket
+        self.dropped = 0  # frames replaced by a newer one of the same avatar before sending
+
+    def offer(self, frames: dict[int, Frame]) -> None:
+        """Queue the newest frame of each avatar; never blocks."""
+        if self._closed:
+            return
+        for avatar_id, frame in frames.items():
+            if avatar_id in self._pending:
+                self.dropped += 1
+            self._pending[avatar_id] = frame
+        self._wake.set()
+
+    def forget(self, avatar_id: int) -> None:
+        """An avatar left: do not send its last frame after its removal notice."""
+        self._pending.pop(avatar_id, None)
+
+    @property
+    def pending(self) -> int:
+        return len(self._pending)
+
+    def close(self) -> None:
+        self._closed = True
+        self._wake.set()
+
+    async def run(self) -> None:
+        """Send pending frames until closed (run as the connection's sender task)."""
+        loop = asyncio.get_running_loop()
+        last = -1e9
+        while True:
+            await self._wake.wait()
+            if self._closed:
+                return
+            wait = last + self._min_interval - loop.time()
+            if wait > 0:  # a spectator that asked for a lower rate
+                await asyncio.sleep(wait)
+                if self._closed:
+                    return
+            self._wake.clear()
+            frames = list(self._pending.values())
+            self._pending.clear()
+            if not frames:
+                continue
+            last = loop.time()
+            await self._send(frames)
+            self.delivered += len(frames)

@@ -1,0 +1,157 @@
+"""A room: its avatars, its spectators, and the batching of solves.
+
+Frames are solved as they arrive: the first tracker frame after a solve schedules the next
+solve with ``call_soon``, so every frame that reaches the event loop in the meantime (from
+any player of the room) joins the same batch. There is no fixed tick to wait for. The batch
+is solved in one call, turned into one AvatarBatch, encoded once and offered to every
+spectator's latest-wins outbox.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from protocol import AvatarBatch, AvatarFrame, AvatarInfo, AvatarRoster, TrackerFrame, encode
+from server.avatars import AvatarSolver
+from server.clock import now
+from server.metrics import Metrics
+from server.outbox import Outbox
+from solver.calibration import Calibration
+
+
+class SharedBatch:
+    """One solved batch, encoded at most once however many spectators receive it whole."""
+
+    def __init__(self, batch: AvatarBatch) -> None:
+        self.batch = batch
+        self._encoded: bytes | None = None
+
+    def encoded(self) -> bytes:
+        if self._encoded is None:
+            self._encoded = encode(self.batch.stamped(now()))
+        return self._encoded
+
+
+Delivery = tuple[SharedBatch, AvatarFrame]
+
+
+@dataclass
+class Avatar:
+    avatar_id: int
+    display_name: str
+    token: str | None
+    info: AvatarInfo | None = None  # the calibrated skeleton, once calibrated
+    connected: bool = True
+
+
+@dataclass
+class Spectator:
+    outbox: Outbox[Delivery]
+    send_bytes: Callable[[bytes], Awaitable[None]]
+    task: asyncio.Task[None] | None = None
+
+
+@dataclass
+class Room:
+    name: str
+    solver: AvatarSolver
+    metrics: Metrics
+    avatars: dict[int, Avatar] = field(default_factory=dict)
+    spectators: dict[int, Spectator] = field(default_factory=dict)
+    _pending: dict[int, tuple[TrackerFrame, float]] = field(default_factory=dict)
+    _scheduled: bool = False
+
+    # ------------------------------------------------------------------ players
+    def find_by_token(self, token: str | None) -> Avatar | None:
+        if token is None:
+            return None
+        return next((a for a in self.avatars.values() if a.token == token), None)
+
+    def calibrate(self, avatar: Avatar, frame_roles: tuple[str, ...],
+                  poses: np.ndarray) -> Calibration:
+        cal = self.solver.calibrate(avatar.avatar_id, frame_roles, poses[:, :3], poses[:, 3:])
+        sk = self.solver.rig.skeleton
+        avatar.info = AvatarInfo(avatar_id=avatar.avatar_id, display_name=avatar.display_name,
+                                 joint_names=sk.names, parents=tuple(int(p) for p in sk.parents),
+                                 rest_offsets=cal.offsets)
+        self._pending.pop(avatar.avatar_id, None)  # frames solved before it are stale
+        self.broadcast_roster(AvatarRoster(avatars=(avatar.info,)))
+        return cal
+
+    def is_calibrated(self, avatar_id: int) -> bool:
+        return avatar_id in self.solver.avatars
+
+    def submit(self, avatar_id: int, frame: TrackerFrame, t_received: float) -> None:
+        """Queue a player's frame (latest wins) and make sure a solve is coming."""
+        if avatar_id in self._pending:
+            self.metrics.frames_superseded += 1
+        self._pending[avatar_id] = (frame, t_received)
+        if not self._scheduled:
+            self._scheduled = True
+            asyncio.get_running_loop().call_soon(self.solve_pending)
+
+    def remove_avatar(self, avatar_id: int) -> None:
+        self.avatars.pop(avatar_id, None)
+        self.solver.remove(avatar_id)
+        self._pending.pop(avatar_id, None)
+        for s in self.spectators.values():
+            s.outbox.forget(avatar_id)
+        self.broadcast_roster(AvatarRoster(removed=(avatar_id,)))
+
+    # ------------------------------------------------------------------ solving
+    def solve_pending(self) -> None:
+        self._scheduled = False
+        pending = [(a, f, t) for a, (f, t) in self._pending.items() if self.is_calibrated(a)]
+        self._pending.clear()
+        if not pending:
+            return
+        solved = self.solver.solve([(a, f.roles, f.positions, f.rotations)
+                                    for a, f, _ in pending])
+        t_solved = now()
+        batch = AvatarBatch.from_arrays(
+            [a for a, _, _ in pending], [f.seq for _, f, _ in pending], solved.roots,
+            solved.rotations, [f.t_capture_server for _, f, _ in pending],
+            [t for _, _, t in pending], t_solved, t_solved)
+        self.metrics.frames_solved += len(pending)
+        self.metrics.batches += 1
+        shared = SharedBatch(batch)
+        deliveries = {f.avatar_id: (shared, f) for f in batch.frames}
+        for s in self.spectators.values():
+            s.outbox.offer(deliveries)
+
+    # ------------------------------------------------------------------ spectators
+    def roster(self) -> AvatarRoster:
+        return AvatarRoster(avatars=tuple(a.info for a in self.avatars.values()
+                                          if a.info is not None))
+
+    def broadcast_roster(self, roster: AvatarRoster) -> None:
+        data = encode(roster)
+        for s in self.spectators.values():
+            asyncio.get_running_loop().create_task(_quiet(s.send_bytes(data)))
+
+    @property
+    def empty(self) -> bool:
+        return not self.avatars and not self.spectators
+
+
+async def send_deliveries(send_bytes: Callable[[bytes], Awaitable[None]],
+                          deliveries: list[Delivery]) -> None:
+    """What a spectator's outbox sends: the shared encoding when it is one whole batch,
+    else the frames it has (the newest of each avatar) as a batch of their own."""
+    first = deliveries[0][0]
+    if all(d[0] is first for d in deliveries) and len(deliveries) == len(first.batch.frames):
+        await send_bytes(first.encoded())
+        return
+    batch = AvatarBatch(frames=tuple(f for _, f in deliveries)).stamped(now())
+    await send_bytes(encode(batch))
+
+
+async def _quiet(aw: Awaitable[None]) -> None:
+    """A send to a connection that is closing fails; its own handler cleans up."""
+    with contextlib.suppress(Exception):  # websockets' ConnectionClosed variants
+        await aw

@@ -1,0 +1,68 @@
+"""protocol.measure: the byte counts and timings the README and bench commands quote."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from protocol import BYTES_PER_ROTATION
+from protocol.measure import (
+    MAKEHUMAN_JOINTS,
+    bytes_per_avatar_frame,
+    time_calls,
+    time_decode_tracker_frame,
+    tracker_frame_bytes,
+)
+
+# one frame inside a batch: fixarray header 1, avatar_id 1, seq 3 (uint16), root bin 2 + 12,
+# rotations bin16 header 3, four float64 times 4 x 9
+FRAME_OVERHEAD = 1 + 1 + 3 + 14 + 3 + 36
+
+
+def test_makehuman_joint_count_matches_the_shipped_rig() -> None:
+    from solver.readers.gltf import load_makehuman
+
+    assert load_makehuman().skeleton.num_joints == MAKEHUMAN_JOINTS == 53
+
+
+@pytest.mark.parametrize("joints", [53, 60, 100])
+def test_bytes_per_avatar_frame(joints: int) -> None:
+    assert bytes_per_avatar_frame(joints, avatars=1) == FRAME_OVERHEAD + BYTES_PER_ROTATION * joints
+    # in a batch of 16 the list header grows by 2 bytes, shared by 16 avatars
+    assert bytes_per_avatar_frame(joints, avatars=16) == pytest.approx(
+        FRAME_OVERHEAD + BYTES_PER_ROTATION * joints + 2 / 16)
+
+
+def test_quantized_frame_is_far_smaller_than_float32() -> None:
+    # 53 joints: 323 bytes against 53 * 16 = 848 bytes of float32 quaternions alone
+    assert bytes_per_avatar_frame(53, avatars=1) == 323
+    assert bytes_per_avatar_frame(53, avatars=1) < 0.4 * 53 * 16
+
+
+def test_tracker_frame_bytes() -> None:
+    # 10 devices: 560 bytes of float64 poses, 124 of role names, the rest keys and scalars
+    assert tracker_frame_bytes() == 745
+    # two devices: 8 rows and 8 role strings fewer, and 112 bytes fit a bin8 header
+    assert tracker_frame_bytes(("head", "hip")) == 745 - 8 * 56 - sum(
+        len(r) + 1 for r in ("left_hand", "right_hand", "left_forearm", "right_forearm",
+                             "left_foot", "right_foot", "left_knee", "right_knee")) - 1
+
+
+def test_time_calls_measures_what_it_times() -> None:
+    def wait_50us() -> None:
+        end = time.perf_counter() + 50e-6
+        while time.perf_counter() < end:
+            pass
+
+    timing = time_calls(wait_50us, runs=200, warmup=5)
+    assert timing.runs == 200
+    assert 50.0 <= timing.median_us < 1000.0
+    assert timing.p99_us >= timing.median_us
+
+
+def test_tracker_frame_decode_is_within_a_loose_budget() -> None:
+    # DESIGN's budget is 20 us (measured ~12 us median); 3x slack keeps a busy CI machine
+    # green while a real regression (a Python loop per device, say) still fails
+    timing = time_decode_tracker_frame(runs=3000)
+    assert 0.0 < timing.median_us < 60.0

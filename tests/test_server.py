@@ -1,0 +1,306 @@
+"""The session server over real sockets on 127.0.0.1: rooms, players, spectators, bad input."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from collections.abc import AsyncIterator, Awaitable, Callable
+from contextlib import asynccontextmanager
+from pathlib import Path
+
+import msgpack
+import numpy as np
+import pytest
+from websockets.asyncio.client import ClientConnection, connect
+
+from protocol import (
+    PROTOCOL_VERSION,
+    AvatarBatch,
+    AvatarRoster,
+    Calibrate,
+    Error,
+    Hello,
+    TrackerFrame,
+    Welcome,
+    decode,
+    dequantize_rotations,
+    encode,
+    quantize_rotations,
+    rotation_angle,
+)
+from server.app import Session, run_server
+from server.outbox import Outbox
+from solver.calibration import calibrate
+from solver.ik import PoseBatch, Solver
+from solver.motion import ViveRecording
+from solver.readers.vive import read_vive
+
+TIMEOUT = 5.0
+
+
+@pytest.fixture(scope="module")
+def session() -> Session:
+    return Session(reconnect_grace=5.0)  # building the rig and warming the solver: once
+
+
+@pytest.fixture(scope="module")
+def recording() -> ViveRecording:
+    path = Path(__file__).resolve().parents[2] / "shared" / "data" / "vive" / "walking.csv"
+    if not path.exists():
+        pytest.skip("../shared/data/vive/walking.csv is absent: the real recordings live "
+                    "beside the project, not in it")
+    return read_vive(path)
+
+
+def run(test: Callable[[str], Awaitable[None]], session: Session) -> None:
+    """Serve on a free port of 127.0.0.1, run the test against it, shut down cleanly."""
+    async def main() -> None:
+        session.rooms.clear()
+        stop = asyncio.Event()
+        ready: asyncio.Future[int] = asyncio.get_running_loop().create_future()
+        server = asyncio.create_task(run_server("127.0.0.1", 0, session, stop,
+                                                ready.set_result))
+        port = await asyncio.wait_for(ready, TIMEOUT)
+        try:
+            await asyncio.wait_for(test(f"ws://127.0.0.1:{port}"), 60)
+        finally:
+            stop.set()
+            await asyncio.wait_for(server, TIMEOUT)
+    asyncio.run(main())
+
+
+@asynccontextmanager
+async def joined(url: str, role: str, room: str, token: str | None = None
+                 ) -> AsyncIterator[tuple[ClientConnection, Welcome]]:
+    async with connect(url, compression=None) as ws:
+        await ws.send(encode(Hello(protocol_version=PROTOCOL_VERSION, role=role, room=room,
+                                   display_name=f"{role}-{room}", token=token)))
+        welcome = await receive(ws)
+        assert isinstance(welcome, Welcome)
+        yield ws, welcome
+
+
+async def receive(ws: ClientConnection) -> object:
+    return decode(await asyncio.wait_for(ws.recv(), TIMEOUT))
+
+
+async def receive_type(ws: ClientConnection, kind: type) -> object:
+    """The next message of a kind, skipping others (e.g. batches before an error reply)."""
+    while True:
+        msg = await receive(ws)
+        if isinstance(msg, kind):
+            return msg
+
+
+def poses(rec: ViveRecording, frame: int) -> np.ndarray:
+    return np.concatenate([rec.positions[frame], rec.rotations[frame]], axis=1)
+
+
+def tracker(rec: ViveRecording, frame: int) -> bytes:
+    return encode(TrackerFrame(seq=frame, roles=rec.devices, poses=poses(rec, frame),
+                               t_capture=float(frame), clock_offset=0.0))
+
+
+def calibration(rec: ViveRecording) -> bytes:
+    return encode(Calibrate(roles=rec.devices, poses=poses(rec, 0), t_capture=0.0,
+                            clock_offset=0.0))
+
+
+def test_spectator_receives_the_offline_solution(session: Session,
+                                                 recording: ViveRecording) -> None:
+    frames = 40
+    received: list[AvatarBatch] = []
+
+    async def test(url: str) -> None:
+        async with joined(url, "spectator", "solo") as (spec, _), \
+                joined(url, "player", "solo") as (player, welcome):
+            assert isinstance(await receive(spec), AvatarRoster)  # empty room at first
+            await player.send(calibration(recording))
+            roster = await receive(spec)
+            assert isinstance(roster, AvatarRoster)
+            assert roster.avatars[0].avatar_id == welcome.avatar_id
+            for f in range(1, frames + 1):  # one at a time: every frame is delivered
+                await player.send(tracker(recording, f))
+                batch = await receive(spec)
+                assert isinstance(batch, AvatarBatch)
+                received.append(batch)
+
+    run(test, session)
+    # the same recording solved offline, frame by frame, warm-started
+    rig = session.rig
+    rec = recording
+    cal = calibrate(rig, dict(zip(rec.devices, rec.positions[0], strict=True)),
+                    dict(zip(rec.devices, rec.rotations[0], strict=True)))
+    solver = Solver(rig, session.solver_name)
+    state = PoseBatch(cal.pose[None].copy(), cal.root[None].copy())
+    targets = cal.targets(rec.positions[1:frames + 1], rec.rotations[1:frames + 1],
+                          rec.devices)
+    for f, batch in enumerate(received):
+        solver.solve(targets[f:f + 1], state, cal.offsets[None])
+        (frame,) = batch.frames
+        assert frame.seq == f + 1
+        # exactly the offline rotations as the wire carries them, within 0.1 deg of them
+        wire = dequantize_rotations(quantize_rotations(state.rotations[0]))
+        np.testing.assert_array_equal(frame.rotations, wire)
+        assert np.degrees(rotation_angle(frame.rotations, state.rotations[0]).max()) <= 0.1
+        np.testing.assert_allclose(frame.root, state.root[0], atol=1e-5)  # float32 root
+
+
+def test_join_leave_and_rooms_are_isolated(session: Session,
+                                           recording: ViveRecording) -> None:
+    async def test(url: str) -> None:
+        async with joined(url, "spectator", "a") as (spec_a, _), \
+                joined(url, "spectator", "b") as (spec_b, _):
+            for ws in (spec_a, spec_b):
+                assert (await receive(ws)).avatars == ()  # type: ignore[attr-defined]
+            async with joined(url, "player", "a") as (player, welcome):
+                await player.send(calibration(recording))
+                await receive_type(spec_a, AvatarRoster)
+                await player.send(tracker(recording, 1))
+                batch = await receive_type(spec_a, AvatarBatch)
+                assert [f.avatar_id for f in batch.frames] == [welcome.avatar_id]
+            # the player left without a token: the avatar goes at once
+            gone = await receive_type(spec_a, AvatarRoster)
+            assert gone.removed == (welcome.avatar_id,)  # type: ignore[attr-defined]
+            # room b heard nothing of room a
+            with pytest.raises(TimeoutError):
+                await asyncio.wait_for(spec_b.recv(), 0.3)
+
+    run(test, session)
+
+
+def test_reconnecting_player_keeps_its_avatar(session: Session,
+                                              recording: ViveRecording) -> None:
+    async def test(url: str) -> None:
+        async with joined(url, "spectator", "r") as (spec, _):
+            await receive(spec)
+            async with joined(url, "player", "r", token="alice") as (player, first):
+                await player.send(calibration(recording))
+                await receive_type(spec, AvatarRoster)
+            async with joined(url, "player", "r", token="alice") as (player, second):
+                assert second.avatar_id == first.avatar_id
+                # still calibrated: frames are solved without a new T-pose
+                await player.send(tracker(recording, 2))
+                batch = await receive_type(spec, AvatarBatch)
+                assert batch.frames[0].avatar_id == first.avatar_id  # type: ignore[attr-defined]
+
+    run(test, session)
+
+
+def _bad_messages(rec: ViveRecording) -> list[tuple[str, bytes, str]]:
+    frame = msgpack.unpackb(tracker(rec, 3))
+    wrong_type = {**frame, "seq": "three"}
+    nan = poses(rec, 3).copy()
+    nan[2, 1] = math.nan
+    nan_frame = {**frame, "poses": nan.astype("<f8").tobytes()}
+    huge = {**frame, "padding": b"x" * 20000}
+    old = {"type": "hello", "protocol_version": 99, "role": "player", "room": "x",
+           "display_name": "old"}
+    return [("not_msgpack", b"\xc1 not msgpack", "msgpack"),
+            ("invalid", msgpack.packb(wrong_type), "seq"),
+            ("invalid", msgpack.packb(nan_frame), "nan"),
+            ("too_large", msgpack.packb(huge), "bytes"),
+            ("unsupported_version", msgpack.packb(old), "99")]
+
+
+def test_bad_messages_are_rejected_and_others_carry_on(session: Session,
+                                                       recording: ViveRecording) -> None:
+    async def test(url: str) -> None:
+        async with joined(url, "spectator", "bad") as (spec, _), \
+                joined(url, "player", "bad") as (good, good_welcome), \
+                joined(url, "player", "bad") as (bad, _):
+            await receive(spec)
+            await good.send(calibration(recording))
+            await bad.send(calibration(recording))
+            await receive_type(spec, AvatarRoster)
+            await receive_type(spec, AvatarRoster)
+            for i, (code, data, words) in enumerate(_bad_messages(recording)):
+                await bad.send(data)
+                err = await receive_type(bad, Error)
+                assert err.code == code, err  # type: ignore[attr-defined]
+                assert words in err.message.lower(), err  # type: ignore[attr-defined]
+                # the good player's next frame still reaches the spectator
+                await good.send(tracker(recording, 10 + i))
+                batch = await receive_type(spec, AvatarBatch)
+                assert good_welcome.avatar_id in [f.avatar_id for f in batch.frames]  # type: ignore[attr-defined]
+            # a spectator may not send tracker frames
+            await spec.send(tracker(recording, 5))
+            err = await receive_type(spec, Error)
+            assert err.code == "not_allowed"  # type: ignore[attr-defined]
+            # the bad player is still connected and still served
+            await bad.send(tracker(recording, 30))
+            await receive_type(spec, AvatarBatch)
+        assert session.metrics.rejected["not_msgpack"] >= 1
+
+    run(test, session)
+
+
+def test_unknown_version_is_refused_at_hello(session: Session) -> None:
+    async def test(url: str) -> None:
+        async with connect(url, compression=None) as ws:
+            await ws.send(msgpack.packb({"type": "hello", "protocol_version": 99,
+                                         "role": "spectator", "room": "v",
+                                         "display_name": "x"}))
+            err = await receive(ws)
+            assert isinstance(err, Error) and err.code == "unsupported_version"
+            assert "99" in err.message
+
+    run(test, session)
+
+
+def test_outbox_keeps_the_latest_frame_per_avatar_for_a_stalled_receiver() -> None:
+    async def main() -> tuple[list[list[str]], int, int]:
+        release = asyncio.Event()
+        sent: list[list[str]] = []
+
+        async def send(frames: list[str]) -> None:
+            sent.append(frames)
+            await release.wait()  # a receiver that stops reading
+
+        box: Outbox[str] = Outbox(send)
+        task = asyncio.create_task(box.run())
+        box.offer({1: "a1", 2: "b1"})
+        await asyncio.sleep(0.01)  # the first send is in progress and stalls
+        for k in range(2, 100):
+            box.offer({1: f"a{k}", 2: f"b{k}"})
+        pending = box.pending
+        release.set()
+        await asyncio.sleep(0.01)
+        box.close()
+        await task
+        return sent, pending, box.dropped
+
+    sent, pending, dropped = asyncio.run(main())
+    assert pending == 2  # bounded by the avatars, not by the frames offered
+    assert sent == [["a1", "b1"], ["a99", "b99"]]  # then only the newest
+    assert dropped == 2 * 97
+
+
+def test_spectator_rate_limit() -> None:
+    async def main() -> int:
+        sends = 0
+
+        async def send(frames: list[int]) -> None:
+            nonlocal sends
+            sends += 1
+
+        box: Outbox[int] = Outbox(send, max_rate_hz=20.0)
+        task = asyncio.create_task(box.run())
+        for k in range(50):  # 90 Hz offers for about half a second
+            box.offer({1: k})
+            await asyncio.sleep(1 / 90)
+        box.close()
+        await task
+        return sends
+
+    sends = asyncio.run(main())
+    assert 8 <= sends <= 13  # ~0.55 s at 20 Hz, not 50
+
+
+def test_shared_batch_is_encoded_once(session: Session, tmp_path: Path) -> None:
+    from server.room import SharedBatch
+    batch = AvatarBatch.from_arrays([1], [1], np.zeros((1, 3)),
+                                    np.tile([0.0, 0.0, 0.0, 1.0], (1, 3, 1)), [0.0], [0.0],
+                                    0.0, 0.0)
+    shared = SharedBatch(batch)
+    assert shared.encoded() is shared.encoded()
