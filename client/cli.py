@@ -39,6 +39,32 @@ def _parser() -> argparse.ArgumentParser:
                     help="SLERP smoothing, weight of the previous frame in [0, 1)")
     ev.add_argument("--json", action="store_true", help="print one JSON document")
 
+    sv = sub.add_parser("serve", help="host sessions: the websockets server")
+    sv.add_argument("--host", default="127.0.0.1",
+                    help="address to listen on (0.0.0.0 for every interface)")
+    sv.add_argument("--port", type=int, default=8765)
+    sv.add_argument("--solver", choices=SOLVERS, default=DEFAULT_SOLVER)
+
+    pl = sub.add_parser("play", help="join a session as a tracked player")
+    pl.add_argument("--server", required=True, help="ws://host:port")
+    pl.add_argument("--room", required=True)
+    pl.add_argument("--source", default="openvr",
+                    help="openvr | vive:FILE | bvh:FILE (default: openvr)")
+    pl.add_argument("--name", default="player")
+    pl.add_argument("--token", default=None,
+                    help="a secret of yours: reconnecting with it keeps your avatar")
+    pl.add_argument("--devices", type=Path, default=None,
+                    help="TOML file mapping tracker serial numbers to roles (openvr)")
+    pl.add_argument("--loop", action="store_true", help="replay a recording forever")
+    pl.add_argument("--seconds", type=float, default=None)
+
+    dm = sub.add_parser("demo", help="a whole session on this machine, with latency table")
+    dm.add_argument("--players", type=int, default=4)
+    dm.add_argument("--spectators", type=int, default=2)
+    dm.add_argument("--seconds", type=float, default=10.0)
+    dm.add_argument("--solver", choices=SOLVERS, default=DEFAULT_SOLVER)
+    dm.add_argument("--json", action="store_true")
+
     bench = sub.add_parser("bench", help="measure speed")
     bsub = bench.add_subparsers(dest="bench", required=True)
     bs = bsub.add_parser("solver", help="microseconds per avatar-frame at several batch sizes")
@@ -57,6 +83,12 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         return run_eval(args.files, args.solver, args.max_iterations, args.calibration,
                         args.smoothing, args.json)
+    if args.command == "serve":
+        return _serve(args)
+    if args.command == "play":
+        return _play(args)
+    if args.command == "demo":
+        return _demo(args)
     if args.command == "bench" and args.bench == "solver":
         from client.bench import bench_solver, format_solver_table
 
@@ -65,6 +97,73 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(json.dumps(result) if args.json else format_solver_table(result))
         return 0
     return 2
+
+
+def _fail(command: str, message: object) -> int:
+    print(f"posecast {command}: {message}", file=sys.stderr)
+    return 1
+
+
+def _serve(args: argparse.Namespace) -> int:
+    import asyncio
+    import logging
+
+    from server.app import Session, install_fast_loop, run_server
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    install_fast_loop()
+    session = Session(solver=args.solver)
+    try:
+        asyncio.run(run_server(args.host, args.port, session, handle_signals=True))
+    except OSError as err:
+        return _fail("serve", f"cannot listen on {args.host}:{args.port}: {err.strerror}")
+    print(json.dumps(session.metrics.as_json()))
+    return 0
+
+
+def _play(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from client.connection import SessionError
+    from client.player import run_player
+    from client.sources import open_source
+    from client.sources.base import SourceError
+    from solver.readers.errors import FormatError
+
+    try:
+        source = open_source(args.source, args.devices, loop=args.loop)
+    except (SourceError, FormatError) as err:
+        return _fail("play", err)
+    try:
+        stats = asyncio.run(run_player(args.server, args.room, args.name, source,
+                                       seconds=args.seconds, token=args.token))
+    except SessionError as err:
+        return _fail("play", err)
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        source.close()
+    print(f"sent {stats.frames_sent} frames in {stats.seconds:.1f} s"
+          + (f"; server errors: {dict(stats.errors)}" if stats.errors else ""))
+    return 0
+
+
+def _demo(args: argparse.Namespace) -> int:
+    from client.demo import run_demo
+    from client.latency import format_latency_table
+
+    if args.players < 0 or args.spectators < 0 or args.seconds <= 0:
+        return _fail("demo", "players and spectators must be >= 0 and seconds > 0")
+    result = run_demo(args.players, args.spectators, args.seconds, solver=args.solver)
+    if args.json:
+        print(json.dumps(result.as_json()))
+    else:
+        print(f"{result.players} players, {result.spectators} spectators, "
+              f"{result.seconds:g} s: sent {result.frames_sent}, solved "
+              f"{result.frames_solved}, delivered {result.frames_delivered} avatar-frames "
+              f"(dropped {result.frames_dropped})")
+        print(format_latency_table(result.latency.summary(), result.latency.counts()))
+    return 0
 
 
 if __name__ == "__main__":

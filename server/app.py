@@ -63,6 +63,8 @@ class Session:
         self.metrics = Metrics()
         self._ids = itertools.count(1)
         self._owners: dict[int, ServerConnection] = {}  # avatar id -> its live connection
+        # before serving: a first join must not wait for the compiled solver to load
+        AvatarSolver(self.rig, solver).warm_up()
 
     def room(self, name: str) -> Room:
         if name not in self.rooms:  # rooms are created on first join

@@ -65,9 +65,8 @@ class AvatarSolver:
         self.rig = rig
         self.solver = Solver(rig, solver)
         self.avatars: dict[int, AvatarState] = {}
-        self._warm_up()
 
-    def _warm_up(self) -> None:
+    def warm_up(self) -> None:
         """Solve once now: loading the compiled solver takes ~0.2 s, not the first frame's."""
         state = PoseBatch.canonical(self.rig, 1)
         gq, gp = forward_kinematics(self.rig.skeleton, state.rotations, state.root)

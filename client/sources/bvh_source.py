@@ -48,7 +48,8 @@ FOREARM_AT = 0.5  # fraction of the way from elbow to wrist
 class BvhSource:
     """Simulated trackers on a BVH performer; see the module docstring."""
 
-    def __init__(self, path: str | Path, loop: bool = False) -> None:
+    def __init__(self, path: str | Path, loop: bool = False,
+                 rate_hz: float | None = None) -> None:
         try:
             motion = read_bvh(path)  # a FormatError (file, line, what) propagates as it is
         except OSError as err:
@@ -70,7 +71,11 @@ class BvhSource:
         self.positions, self.rotations = self._devices(gq, gp)
         tq, tp = self._place_tpose(canon_q, canon_p, gp[0])
         self.tpose_positions, self.tpose_rotations = (a[0] for a in self._devices(tq, tp))
-        self.rate_hz = float(motion.fps)
+        # a headset samples at its own rate (90 Hz for a Vive), not the capture's: replay
+        # at rate_hz by stepping through the clip by time, nearest frame
+        self.rate_hz = float(rate_hz or motion.fps)
+        self._step = float(motion.fps) / self.rate_hz
+        self._position = 0.0
         self.loop = loop
         self.next_frame = 0
 
@@ -115,7 +120,10 @@ class BvhSource:
                 return None
             self.next_frame = 0
         f = self.next_frame
-        self.next_frame += 1
+        self._position += self._step
+        if round(self._position) >= self.num_frames and self.loop:
+            self._position -= self.num_frames
+        self.next_frame = round(self._position)
         return DeviceSample(now(), ROLES, self.positions[f].copy(), self.rotations[f].copy())
 
     def close(self) -> None:

@@ -1,0 +1,284 @@
+"""One client connection to a posecast server: connect, hello/welcome, clock sync, leave.
+
+Players and spectators share this layer (like the thin I/O layers of the websockets
+library over its sans-I/O core): ``open_session`` connects and does the handshake, a
+``Session`` sends and receives protocol messages, answers its own Pongs into a
+``ClockEstimator`` and pings on a schedule (a quick burst at start, then one a second).
+Every way a session can fail for the user (refused, unknown host, no answer, an Error
+in reply to Hello, the server going away) becomes one ``SessionError`` whose message is
+a single line naming the URL and the reason.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import errno
+import logging
+import socket
+from types import TracebackType
+from typing import Literal
+
+from pydantic import ValidationError
+from websockets.asyncio.client import ClientConnection, connect
+from websockets.exceptions import (
+    ConnectionClosed,
+    InvalidHandshake,
+    InvalidStatus,
+    InvalidURI,
+)
+
+from client.sources.base import now
+from protocol import (
+    MAX_MESSAGE_BYTES,
+    PROTOCOL_VERSION,
+    ClientMessage,
+    ClockEstimator,
+    Error,
+    Hello,
+    Leave,
+    Message,
+    Ping,
+    Pong,
+    ProtocolError,
+    Welcome,
+    decode,
+    encode,
+)
+from protocol.validation import protocol_error
+
+log = logging.getLogger(__name__)
+
+# seconds for TCP + websocket handshake, and again for the Welcome (generous: a server's
+# first room may stall while its solver compiles)
+OPEN_TIMEOUT = 10.0
+CLOSE_TIMEOUT = 1.0  # a peer that does not answer our close is not worth a longer wait
+
+# clock sync: a burst of pings at start so the first frames carry a good offset, then a
+# slow refresh so the estimate follows drift (ClockEstimator keeps 10 s of samples).
+# Synced once SYNC_MIN_SAMPLES are in: the estimator takes the median of its best 3.
+SYNC_MIN_SAMPLES = 3
+SYNC_BURST = 5
+SYNC_BURST_INTERVAL = 0.02
+SYNC_INTERVAL = 1.0
+
+
+class SessionError(Exception):
+    """A session could not start or ended unasked; ``str()`` is one line for the user."""
+
+    def __init__(self, url: str, reason: str, code: str | None = None) -> None:
+        super().__init__(f"{url}: {reason}")
+        self.url = url
+        self.reason = reason
+        self.code = code  # the server's ErrorCode when it refused us, else None
+
+
+def _connect_reason(exc: BaseException) -> str:
+    """Why connecting failed, in words for the user."""
+    # with several addresses (localhost: ::1 and 127.0.0.1) asyncio raises a plain
+    # OSError("Multiple exceptions: ...") rather than ConnectionRefusedError
+    if isinstance(exc, ConnectionRefusedError) or (
+            isinstance(exc, OSError) and f"[Errno {errno.ECONNREFUSED}]" in str(exc)):
+        return "connection refused (is a posecast server running there?)"
+    if isinstance(exc, socket.gaierror):
+        return f"cannot resolve the host name ({exc.strerror or exc})"
+    if isinstance(exc, InvalidURI):
+        return "not a websocket URL (expected ws://HOST:PORT)"
+    if isinstance(exc, InvalidStatus):
+        return (f"not a posecast server: HTTP {exc.response.status_code} instead of a "
+                f"websocket upgrade")
+    if isinstance(exc, InvalidHandshake):
+        return f"websocket handshake failed ({exc})"
+    if isinstance(exc, TimeoutError):
+        return "no answer (timed out)"
+    if isinstance(exc, OSError):
+        return f"cannot connect ({exc.strerror or exc})"
+    return f"{type(exc).__name__}: {exc}"
+
+
+def _closed_reason(exc: ConnectionClosed, last_error: Error | None) -> str:
+    """Why the server ended the connection: its close code/reason and its last Error."""
+    frame = exc.rcvd
+    if frame is None:
+        why = "the connection to the server was lost"
+    else:
+        why = f"the server closed the connection: {frame}"  # "1001 (going away)"
+    if last_error is not None:
+        why += f"; last error: {last_error.code}: {last_error.message}"
+    return why
+
+
+def make_hello(url: str, role: Literal["player", "spectator"], room: str, name: str,
+               token: str | None = None, max_rate_hz: float | None = None) -> Hello:
+    """The Hello to join with; SessionError (one line, naming the field) if it is invalid,
+    e.g. a room name the protocol does not allow."""
+    try:
+        return Hello(protocol_version=PROTOCOL_VERSION, role=role, room=room,
+                     display_name=name, token=token, max_rate_hz=max_rate_hz)
+    except ValidationError as exc:
+        raise SessionError(url, f"cannot join: {protocol_error(exc, 'hello').message}",
+                           ) from None
+
+
+async def open_session(url: str, hello: Hello, *, timeout: float = OPEN_TIMEOUT,
+                       max_size: int = MAX_MESSAGE_BYTES) -> Session:
+    """Connect to ``url``, send ``hello``, wait for the Welcome; raise SessionError if not."""
+    try:
+        # compression off: poses are packed floats that deflate barely shrinks, and it
+        # costs latency; no proxy: a real-time stream should not detour through one
+        ws = await connect(url, compression=None, max_size=max_size, open_timeout=timeout,
+                           close_timeout=CLOSE_TIMEOUT, proxy=None)
+    except (OSError, InvalidURI, InvalidHandshake, TimeoutError) as exc:
+        raise SessionError(url, _connect_reason(exc)) from None
+    try:
+        welcome = await _handshake(url, ws, hello, timeout)
+    except BaseException:  # SessionError, or a cancel mid-handshake: do not leak the socket
+        await ws.close()
+        raise
+    return Session(url, ws, welcome)
+
+
+async def _handshake(url: str, ws: ClientConnection, hello: Hello, timeout: float) -> Welcome:
+    try:
+        await ws.send(encode(hello))
+        async with asyncio.timeout(timeout):
+            data = await ws.recv()
+        reply = decode(data)
+    except TimeoutError:
+        raise SessionError(url, f"no welcome from the server within {timeout:g} s") from None
+    except ConnectionClosed as exc:
+        raise SessionError(url, _closed_reason(exc, None) + " during the handshake") from None
+    except ProtocolError as exc:
+        raise SessionError(url, f"not a posecast server reply ({exc})") from None
+    if isinstance(reply, Error):
+        raise SessionError(url, f"the server refused to join: {reply.code}: {reply.message}",
+                           code=reply.code)
+    if not isinstance(reply, Welcome):
+        raise SessionError(url, f"expected a welcome from the server, got {reply.type!r}")
+    return reply
+
+
+async def stop_task(task: asyncio.Task[None]) -> None:
+    """Cancel ``task`` and wait for it to end, dropping whatever it raised.
+
+    Not ``suppress(CancelledError): await task``: that would also swallow a cancel of
+    the caller itself, which arrives as the same exception.
+    """
+    task.cancel()
+    await asyncio.wait([task])
+    if not task.cancelled():
+        task.exception()  # retrieved, so asyncio does not log it as never retrieved
+
+
+class Session:
+    """An open, welcomed connection: typed send/receive, clock estimate, leave.
+
+    Use it as ``async with await open_session(...) as s:``; leaving the block sends
+    Leave and closes. Call ``start_clock_sync`` once a task reads ``receive`` (Pongs are
+    consumed there), then ``await wait_synced()`` before sending times.
+    """
+
+    def __init__(self, url: str, ws: ClientConnection, welcome: Welcome) -> None:
+        self.url = url
+        self.ws = ws
+        self.welcome = welcome
+        self.clock = ClockEstimator()
+        self.last_error: Error | None = None  # latest Error from the server, for messages
+        self.bytes_received = 0
+        self._synced = asyncio.Event()
+        self._pinger: asyncio.Task[None] | None = None
+        self._leaving = False
+
+    @property
+    def connection_id(self) -> int:
+        return self.welcome.connection_id
+
+    @property
+    def avatar_id(self) -> int | None:
+        return self.welcome.avatar_id
+
+    # ------------------------------------------------------------------ messages
+    async def send(self, message: ClientMessage) -> None:
+        """Send one message; SessionError if the server is gone."""
+        try:
+            await self.ws.send(encode(message))
+        except ConnectionClosed as exc:
+            raise SessionError(self.url, _closed_reason(exc, self.last_error)) from None
+
+    async def receive(self) -> tuple[Message, float]:
+        """The next message other than a Pong, and ``now()`` right when it arrived.
+
+        Pongs go into ``clock``. Raises SessionError when the connection ends (stop the
+        reading task before ``close``: the server answers our Leave by closing) and
+        ProtocolError for bytes that do not decode, which the caller counts and survives.
+        """
+        while True:
+            try:
+                data = await self.ws.recv()
+            except ConnectionClosed as exc:
+                why = ("the session was closed" if self._leaving
+                       else _closed_reason(exc, self.last_error))
+                raise SessionError(self.url, why) from None
+            t = now()  # before decoding, so decode time counts as latency
+            self.bytes_received += len(data)
+            msg = decode(data)
+            if isinstance(msg, Pong):
+                self._add_pong(msg, t)
+                continue
+            if isinstance(msg, Error):
+                self.last_error = msg
+            return msg, t
+
+    # ------------------------------------------------------------------ clock
+    def _add_pong(self, pong: Pong, t3: float) -> None:
+        if self.clock.add_pong(pong, t3) and len(self.clock) >= SYNC_MIN_SAMPLES:
+            self._synced.set()
+
+    async def _ping_loop(self, burst: int, burst_interval: float, interval: float) -> None:
+        k = 0
+        while True:
+            try:
+                await self.ws.send(encode(Ping(t0=now())))
+            except ConnectionClosed:
+                return  # receive() reports it; a ping has nothing to add
+            k += 1
+            await asyncio.sleep(burst_interval if k < burst else interval)
+
+    def start_clock_sync(self, burst: int = SYNC_BURST, burst_interval: float =
+                         SYNC_BURST_INTERVAL, interval: float = SYNC_INTERVAL) -> None:
+        """Ping ``burst`` times ``burst_interval`` apart, then every ``interval`` s."""
+        if self._pinger is None:
+            self._pinger = asyncio.create_task(
+                self._ping_loop(burst, burst_interval, interval), name="posecast-ping")
+
+    async def wait_synced(self, timeout: float = 1.0) -> bool:
+        """Wait until SYNC_MIN_SAMPLES Pongs are in; False on timeout (then the offset is
+        whatever the samples so far give, 0.0 with none)."""
+        try:
+            async with asyncio.timeout(timeout):
+                await self._synced.wait()
+        except TimeoutError:
+            log.warning("%s: clock sync incomplete after %g s (%d samples)", self.url,
+                        timeout, len(self.clock))
+            return False
+        return True
+
+    # ------------------------------------------------------------------ leave
+    async def close(self, reason: str = "") -> None:
+        """Send Leave (if the connection is still open) and close; never raises."""
+        if self._pinger is not None:
+            await stop_task(self._pinger)
+        if self._leaving:
+            return
+        self._leaving = True
+        with contextlib.suppress(ConnectionClosed, OSError):
+            await self.ws.send(encode(Leave(reason=reason)))
+        with contextlib.suppress(ConnectionClosed, OSError):
+            await self.ws.close()
+
+    async def __aenter__(self) -> Session:
+        return self
+
+    async def __aexit__(self, exc_type: type[BaseException] | None,
+                        exc: BaseException | None, tb: TracebackType | None) -> None:
+        await self.close()

@@ -1,0 +1,146 @@
+"""`posecast demo`: a whole session on this machine, measured.
+
+An embedded server runs in its own process (its event loop must not share a core's time
+with the clients it serves, or its latency would measure theirs); N players replay the
+built-in motion from one shared schedule, as headsets at the same rate would, and M
+headless spectators receive. The result: frame counts and per-stage latency percentiles,
+all on the server clock.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import multiprocessing as mp
+from collections.abc import Coroutine
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any, TypeVar
+
+from client.builtin import builtin_motion_path
+from client.latency import LatencyRecorder
+from client.player import PlayerStats, Ticker, run_player
+from client.sources.bvh_source import BvhSource
+from client.spectator import SpectatorStats, run_spectator
+
+ROOM = "demo"
+T = TypeVar("T")
+DRAIN_SECONDS = 0.5  # after the players stop, for the last frames to reach spectators
+HEADSET_HZ = 90.0  # an HTC Vive's rate: players send what their headset samples
+
+
+@dataclass
+class DemoResult:
+    players: int
+    spectators: int
+    seconds: float
+    frames_sent: int
+    frames_solved: int
+    frames_delivered: int
+    frames_dropped: int
+    rejected: dict[str, int]
+    latency: LatencyRecorder
+
+    def as_json(self) -> dict[str, object]:
+        return {"players": self.players, "spectators": self.spectators,
+                "seconds": round(self.seconds, 3), "frames_sent": self.frames_sent,
+                "frames_solved": self.frames_solved,
+                "frames_delivered": self.frames_delivered,
+                "frames_dropped": self.frames_dropped, "rejected": self.rejected,
+                "latency_ms": self.latency.summary()}
+
+
+def _serve_process(pipe: Connection, solver: str) -> None:
+    """The server process: report the port, serve until told to stop, report metrics."""
+    from server.app import Session, install_fast_loop, run_server
+
+    install_fast_loop()
+
+    async def main() -> dict[str, object]:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        loop.add_reader(pipe.fileno(), stop.set)  # any message from the parent: stop
+        session = Session(solver=solver)
+        await run_server("127.0.0.1", 0, session, stop, ready=pipe.send)
+        return session.metrics.as_json()
+
+    pipe.send(asyncio.run(main()))
+
+
+class EmbeddedServer:
+    """A server process on loopback for the length of a ``with`` block."""
+
+    def __init__(self, solver: str = "analytic") -> None:
+        ctx = mp.get_context("spawn")  # a fresh interpreter: no inherited event loop
+        self._pipe, child = ctx.Pipe()
+        self._process = ctx.Process(target=_serve_process, args=(child, solver), daemon=True)
+        self.port = 0
+        self.metrics: dict[str, object] = {}
+
+    def __enter__(self) -> EmbeddedServer:
+        self._process.start()
+        if not self._pipe.poll(60):
+            self._process.kill()
+            raise RuntimeError("the embedded server did not start within 60 s")
+        self.port = int(self._pipe.recv())
+        return self
+
+    @property
+    def url(self) -> str:
+        return f"ws://127.0.0.1:{self.port}"
+
+    def __exit__(self, *exc: object) -> None:
+        self._pipe.send("stop")
+        if self._pipe.poll(30):
+            self.metrics = self._pipe.recv()
+        self._process.join(10)
+        if self._process.is_alive():
+            self._process.kill()
+
+
+async def run_clients(url: str, players: int, spectators: int, seconds: float,
+                      motion: Path) -> tuple[list[PlayerStats], list[SpectatorStats]]:
+    stop_spectators = asyncio.Event()
+    spectator_tasks = [asyncio.create_task(run_spectator(url, ROOM, f"spectator {i + 1}",
+                                                         stop=stop_spectators))
+                       for i in range(spectators)]
+    await asyncio.sleep(0.5)  # every spectator in the room before the first frame
+    sources = [BvhSource(motion, loop=True, rate_hz=HEADSET_HZ) for _ in range(players)]
+    ticker = Ticker(sources[0].rate_hz) if sources else None
+    try:
+        player_stats = await asyncio.gather(*(
+            run_player(url, ROOM, f"player {i + 1}", source, seconds=seconds, ticker=ticker)
+            for i, source in enumerate(sources)))
+    finally:
+        for source in sources:
+            source.close()
+    await asyncio.sleep(DRAIN_SECONDS)
+    stop_spectators.set()
+    spectator_stats = await asyncio.gather(*spectator_tasks)
+    return list(player_stats), list(spectator_stats)
+
+
+def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
+             motion: Path | None = None, solver: str = "analytic") -> DemoResult:
+    motion = motion or builtin_motion_path()
+    with EmbeddedServer(solver) as server:
+        player_stats, spectator_stats = _run(run_clients(server.url, players, spectators,
+                                                         seconds, motion))
+    metrics = server.metrics
+    rejected = metrics.get("rejected", {})
+    return DemoResult(
+        players=players, spectators=spectators, seconds=seconds,
+        frames_sent=sum(p.frames_sent for p in player_stats),
+        frames_solved=int(metrics.get("frames_solved", 0)),  # type: ignore[call-overload]
+        frames_delivered=sum(s.frames_received for s in spectator_stats),
+        frames_dropped=int(metrics.get("frames_dropped", 0)),  # type: ignore[call-overload]
+        rejected=dict(rejected) if isinstance(rejected, dict) else {},
+        latency=LatencyRecorder.merged(s.latency for s in spectator_stats))
+
+
+def _run(coro: Coroutine[Any, Any, T]) -> T:
+    """The clients' event loop: uvloop when installed."""
+    from server.app import install_fast_loop
+
+    install_fast_loop()
+    return asyncio.run(coro)

@@ -1,0 +1,263 @@
+"""The player: reads a pose source at its rate and streams tracker frames to the server.
+
+``run_player`` connects, syncs its clock, sends a Calibrate (the source's T-pose), then one
+TrackerFrame per slot of an absolute schedule (``Ticker``) until the source ends, the time
+is up, ``stop`` is set or the task is cancelled; it then sends Leave. Error replies from
+the server are logged and counted, not fatal: the next frame may well be fine.
+
+The message builders (``device_poses``, ``calibrate_message``, ``tracker_frame``) are pure,
+so tests check them without a server.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import cast
+
+import numpy as np
+from numpy.typing import NDArray
+
+from client.connection import Session, SessionError, make_hello, open_session, stop_task
+from client.sources.base import DeviceSample, PoseSource, now
+from protocol import (
+    Calibrate,
+    DeviceRole,
+    Error,
+    ProtocolError,
+    TrackerFrame,
+)
+
+log = logging.getLogger(__name__)
+
+
+# --------------------------------------------------------------------------- messages
+def device_poses(sample: DeviceSample) -> NDArray[np.float64]:
+    """(D, 7) rows of position (metres) | quaternion x y z w, as the protocol wants."""
+    return np.concatenate([np.asarray(sample.positions, dtype=np.float64),
+                           np.asarray(sample.rotations, dtype=np.float64)], axis=1)
+
+
+def _roles(sample: DeviceSample) -> tuple[DeviceRole, ...]:
+    # sources give plain strings; the message validates them against DeviceRole
+    return cast(tuple[DeviceRole, ...], sample.roles)
+
+
+def calibrate_message(sample: DeviceSample, clock_offset: float) -> Calibrate:
+    """The Calibrate message of a T-pose sample (``clock_offset``: server - client, s)."""
+    return Calibrate(roles=_roles(sample), poses=device_poses(sample),
+                     t_capture=float(sample.t_capture), clock_offset=float(clock_offset))
+
+
+def tracker_frame(seq: int, sample: DeviceSample, clock_offset: float) -> TrackerFrame:
+    """The TrackerFrame of one sample; ``t_capture`` stays on the client clock."""
+    return TrackerFrame(seq=seq, roles=_roles(sample), poses=device_poses(sample),
+                        t_capture=float(sample.t_capture), clock_offset=float(clock_offset))
+
+
+# --------------------------------------------------------------------------- pacing
+class Ticker:
+    """An absolute schedule: slot k is due at ``start + k / rate_hz`` (``now()`` clock).
+
+    Sleeping "one period" after each send would drift by every send's duration; waiting
+    for absolute slot times does not. A caller that falls behind gets the latest slot
+    already due, at once, and the missed ones are skipped (never a burst of catch-up
+    frames, which would only be stale poses).
+
+    One Ticker may be shared by many players in one process: every waiter of a slot
+    awaits the same future, resolved by one timer, so they all wake in the same event
+    loop iteration and their frames reach the server together, to be solved in one batch.
+    """
+
+    def __init__(self, rate_hz: float, start: float | None = None,
+                 clock: Callable[[], float] = now) -> None:
+        if not (math.isfinite(rate_hz) and rate_hz > 0.0):
+            raise ValueError(f"rate must be a positive number of Hz, got {rate_hz}")
+        self.rate_hz = float(rate_hz)
+        self.period = 1.0 / self.rate_hz
+        self.start = start  # None: set by the first wait
+        self.clock = clock
+        self._slots: dict[int, asyncio.Future[int]] = {}
+
+    def slot_time(self, k: int) -> float:
+        """When slot k is due; k * period, not a running sum, so no rounding drift."""
+        assert self.start is not None
+        return self.start + k * self.period
+
+    def next_slot(self, last: int, t: float) -> int:
+        """The slot to serve after ``last`` at time ``t``: ``last + 1``, or if that is
+        already past, the latest slot due by ``t`` (the ones between are skipped)."""
+        assert self.start is not None
+        due = math.floor((t - self.start) * self.rate_hz)
+        # rounding can put floor one off when t is (nearly) a slot time: trust slot_time
+        if self.slot_time(due + 1) <= t:
+            due += 1
+        elif self.slot_time(due) > t:
+            due -= 1
+        return max(last + 1, due)
+
+    async def wait(self, last: int = -1) -> int:
+        """Sleep until the slot after ``last`` (see ``next_slot``) is due; return it."""
+        t = self.clock()
+        if self.start is None:
+            self.start = t
+        k = self.next_slot(last, t)
+        delay = self.slot_time(k) - t
+        if delay <= 0.0:
+            await asyncio.sleep(0)  # late: go at once, but let the others run first
+            return k
+        fut = self._slots.get(k)
+        if fut is None:
+            loop = asyncio.get_running_loop()
+            fut = self._slots[k] = loop.create_future()
+            loop.call_later(delay, self._fire, k)
+        # shield: one waiter being cancelled must not cancel the slot for the others
+        return await asyncio.shield(fut)
+
+    def _fire(self, k: int) -> None:
+        fut = self._slots.pop(k, None)
+        if fut is not None and not fut.done():
+            fut.set_result(k)
+
+
+# --------------------------------------------------------------------------- player
+@dataclass
+class PlayerStats:
+    """What one player did; ``errors`` counts the server's Error replies by code."""
+
+    frames_sent: int = 0
+    calibrations_sent: int = 0
+    slots_skipped: int = 0  # schedule slots missed because the loop ran late
+    errors: Counter[str] = field(default_factory=Counter)
+    last_error: str | None = None  # "code: message" of the latest Error
+    connection_id: int | None = None
+    avatar_id: int | None = None
+    clock_offset: float = 0.0  # server - client, seconds, at the end
+    clock_rtt: float = math.inf  # best round trip to the server, seconds
+    seconds: float = 0.0  # from the first frame to the last
+    ended_by: str = ""  # "source", "time", "stop", "cancel" or "server" (it went away)
+
+
+class Player:
+    """One player connection streaming a pose source; see the module docstring.
+
+    The caller owns ``source`` (opens and closes it). ``ticker``: a shared schedule (its
+    rate should equal the source's); by default the player paces itself at
+    ``source.rate_hz``.
+    """
+
+    def __init__(self, url: str, room: str, name: str, source: PoseSource,
+                 token: str | None = None, ticker: Ticker | None = None) -> None:
+        self.url = url
+        self.hello = make_hello(url, "player", room, name, token)
+        self.source = source
+        self.ticker = ticker if ticker is not None else Ticker(source.rate_hz)
+        if abs(self.ticker.rate_hz - source.rate_hz) > 1e-6 * source.rate_hz:
+            log.warning("ticker at %g Hz but the source is %g Hz: playback speed changes",
+                        self.ticker.rate_hz, source.rate_hz)
+        self.stats = PlayerStats()
+        self.session: Session | None = None
+        self._seq = 0
+        self._recalibrate = False
+
+    def recalibrate(self) -> None:
+        """Send a fresh Calibrate (the source's T-pose now) before the next frame."""
+        self._recalibrate = True
+
+    async def run(self, seconds: float | None = None,
+                  stop: asyncio.Event | None = None) -> PlayerStats:
+        """Stream until the source ends, ``seconds`` pass, ``stop`` is set or cancelled."""
+        session = await open_session(self.url, self.hello)
+        self.session = session
+        self.stats.connection_id = session.connection_id
+        self.stats.avatar_id = session.avatar_id
+        reader = asyncio.create_task(self._read_loop(session), name="posecast-player-read")
+        try:
+            session.start_clock_sync()
+            await session.wait_synced()
+            await self._send_calibration(session)
+            self.stats.ended_by = await self._stream(session, reader, seconds, stop)
+        except asyncio.CancelledError:
+            self.stats.ended_by = "cancel"
+            raise
+        except SessionError:
+            self.stats.ended_by = "server"
+            raise
+        finally:
+            await stop_task(reader)  # its SessionError, if any, was raised by _stream
+            self.stats.clock_offset = session.clock.offset
+            self.stats.clock_rtt = session.clock.rtt
+            await session.close(self.stats.ended_by)
+        return self.stats
+
+    async def _stream(self, session: Session, reader: asyncio.Task[None],
+                      seconds: float | None, stop: asyncio.Event | None) -> str:
+        """The frame loop; returns why it ended."""
+        slot = -1
+        t_first: float | None = None
+        deadline = math.inf
+        while True:
+            k = await self.ticker.wait(slot)
+            if slot >= 0:
+                self.stats.slots_skipped += k - slot - 1
+            slot = k
+            if reader.done():  # the server went away: reader holds the SessionError
+                reader.result()
+                return "server"
+            if stop is not None and stop.is_set():
+                return "stop"
+            if now() >= deadline:
+                return "time"
+            if self._recalibrate:
+                await self._send_calibration(session)
+            sample = self.source.read()
+            if sample is None:
+                return "source"
+            if t_first is None:
+                t_first = sample.t_capture
+                deadline = t_first + seconds if seconds is not None else math.inf
+            await session.send(tracker_frame(self._seq, sample, session.clock.offset))
+            self._seq += 1
+            self.stats.frames_sent += 1
+            self.stats.seconds = sample.t_capture - t_first
+
+    async def _send_calibration(self, session: Session) -> None:
+        self._recalibrate = False
+        message = calibrate_message(self.source.calibration(), session.clock.offset)
+        await session.send(message)
+        self.stats.calibrations_sent += 1
+
+    async def _read_loop(self, session: Session) -> None:
+        """Consume what the server sends a player: Pongs (in receive), Errors."""
+        while True:
+            try:
+                msg, _ = await session.receive()
+            except ProtocolError as err:  # a reply we cannot decode: count, carry on
+                self._count_error(f"client:{err.code}", err.message)
+                continue
+            if isinstance(msg, Error):
+                self._count_error(msg.code, msg.message)
+
+    def _count_error(self, code: str, message: str) -> None:
+        self.stats.errors[code] += 1
+        self.stats.last_error = f"{code}: {message}"
+        # the first of each code is news; at 90 Hz the repeats would flood the log
+        level = logging.WARNING if self.stats.errors[code] == 1 else logging.DEBUG
+        log.log(level, "%s: server error %s", self.url, self.stats.last_error)
+
+
+async def run_player(url: str, room: str, name: str, source: PoseSource,
+                     seconds: float | None = None, token: str | None = None,
+                     ticker: Ticker | None = None,
+                     stop: asyncio.Event | None = None) -> PlayerStats:
+    """Join ``room`` at ``url`` as ``name`` and stream ``source``; see ``Player``.
+
+    Raises SessionError (one line: URL and reason) if the server cannot be reached,
+    refuses the hello, or goes away mid-stream. The caller closes ``source``.
+    """
+    return await Player(url, room, name, source, token=token, ticker=ticker).run(seconds,
+                                                                                 stop)

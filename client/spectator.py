@@ -1,0 +1,165 @@
+"""The headless spectator: receives every avatar of a room and keeps per-stage latency.
+
+It holds what a viewer needs to draw (the roster of skeletons, the latest frame of each
+avatar) and what a report needs (frames received per avatar, a ``LatencyRecorder`` of the
+stages of ``AvatarFrame.latencies``). Receive time is taken right after ``recv`` returns,
+before decoding, and put on the server clock with this connection's clock estimate;
+stages that need it are recorded only once the clock is synced (an offset of 0.0 would
+make them garbage), the server-side ones always.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Any
+
+from client.connection import Session, make_hello, open_session, stop_task
+from client.latency import LatencyRecorder
+from client.sources.base import now
+from protocol import (
+    AvatarBatch,
+    AvatarFrame,
+    AvatarInfo,
+    AvatarRoster,
+    ClockEstimator,
+    Error,
+    ProtocolError,
+)
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ReceivedFrame:
+    """An avatar's latest frame and when it arrived (local clock: ``client.sources.now``)."""
+
+    frame: AvatarFrame
+    t_received: float
+
+
+@dataclass
+class SpectatorStats:
+    """What one spectator received. ``frames_received`` counts avatar-frames."""
+
+    frames_received: int = 0
+    batches_received: int = 0
+    bytes_received: int = 0
+    frames_per_avatar: Counter[int] = field(default_factory=Counter)
+    latency: LatencyRecorder = field(default_factory=LatencyRecorder)
+    errors: Counter[str] = field(default_factory=Counter)  # Error codes from the server
+    last_error: str | None = None
+    connection_id: int | None = None
+    clock_offset: float = 0.0  # server - local, seconds, at the end
+    clock_rtt: float = math.inf  # best round trip, seconds
+    seconds: float = 0.0  # connected time
+
+
+class Spectator:
+    """One spectator connection; ``run`` receives until time is up or ``stop`` is set.
+
+    ``roster`` (avatar id -> skeleton) and ``latest`` (avatar id -> ReceivedFrame) are
+    live while it runs, for a viewer to render from; ``stats`` too.
+    """
+
+    def __init__(self, url: str, room: str, name: str, max_rate_hz: float | None = None,
+                 token: str | None = None) -> None:
+        self.url = url
+        self.hello = make_hello(url, "spectator", room, name, token, max_rate_hz)
+        self.roster: dict[int, AvatarInfo] = {}
+        self.latest: dict[int, ReceivedFrame] = {}
+        self.stats = SpectatorStats()
+        self.session: Session | None = None
+
+    async def run(self, seconds: float | None = None,
+                  stop: asyncio.Event | None = None) -> SpectatorStats:
+        """Receive until ``seconds`` pass or ``stop`` is set (neither: until cancelled).
+
+        Raises SessionError if the server cannot be reached, refuses, or goes away;
+        ``stats`` keeps what was received up to then.
+        """
+        session = await open_session(self.url, self.hello)
+        self.session = session
+        self.stats.connection_id = session.connection_id
+        t_start = now()
+        reader = asyncio.create_task(self._read_loop(session), name="posecast-spectate")
+        try:
+            session.start_clock_sync()
+            await _until(reader, seconds, stop)
+        finally:
+            await stop_task(reader)  # its SessionError, if any, was raised by _until
+            self.stats.seconds = now() - t_start
+            self.stats.bytes_received = session.bytes_received
+            self.stats.clock_offset = session.clock.offset
+            self.stats.clock_rtt = session.clock.rtt
+            await session.close()
+        return self.stats
+
+    async def _read_loop(self, session: Session) -> None:
+        while True:
+            try:
+                msg, t = await session.receive()
+            except ProtocolError as err:  # undecodable bytes: count, carry on
+                self._count_error(f"client:{err.code}", err.message)
+                continue
+            if isinstance(msg, AvatarBatch):
+                self.on_batch(msg, t, session.clock)
+            elif isinstance(msg, AvatarRoster):
+                self.on_roster(msg)
+            elif isinstance(msg, Error):
+                self._count_error(msg.code, msg.message)
+
+    def on_batch(self, batch: AvatarBatch, t_local: float, clock: ClockEstimator) -> None:
+        """Record a batch received at ``t_local`` (this process's clock)."""
+        stats = self.stats
+        # receive-side stages only with a synced clock; server-side ones need no clock
+        t_server = clock.to_server(t_local) if clock.synced else None
+        for f in batch.frames:
+            self.latest[f.avatar_id] = ReceivedFrame(f, t_local)
+            stats.frames_per_avatar[f.avatar_id] += 1
+            stats.latency.add(f.latencies(t_received=t_server))
+        stats.frames_received += len(batch.frames)
+        stats.batches_received += 1
+
+    def on_roster(self, roster: AvatarRoster) -> None:
+        """Avatars joined or recalibrated (new skeletons), or left."""
+        for info in roster.avatars:
+            self.roster[info.avatar_id] = info
+        for avatar_id in roster.removed:
+            self.roster.pop(avatar_id, None)
+            self.latest.pop(avatar_id, None)
+
+    def _count_error(self, code: str, message: str) -> None:
+        self.stats.errors[code] += 1
+        self.stats.last_error = f"{code}: {message}"
+        level = logging.WARNING if self.stats.errors[code] == 1 else logging.DEBUG
+        log.log(level, "%s: %s", self.url, self.stats.last_error)
+
+
+async def _until(reader: asyncio.Task[None], seconds: float | None,
+                 stop: asyncio.Event | None) -> None:
+    """Return when time is up or ``stop`` is set; re-raise if ``reader`` failed first."""
+    waits: set[asyncio.Task[Any]] = {reader}
+    stopper = asyncio.create_task(stop.wait()) if stop is not None else None
+    if stopper is not None:
+        waits.add(stopper)
+    try:
+        await asyncio.wait(waits, timeout=seconds, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        if stopper is not None:
+            stopper.cancel()
+    if reader.done():
+        reader.result()  # raises the SessionError of a server that went away
+
+
+async def run_spectator(url: str, room: str, name: str, seconds: float | None = None,
+                        stop: asyncio.Event | None = None, max_rate_hz: float | None = None,
+                        token: str | None = None) -> SpectatorStats:
+    """Spectate ``room`` at ``url`` headless; see ``Spectator.run``."""
+    return await Spectator(url, room, name, max_rate_hz=max_rate_hz, token=token).run(
+        seconds, stop)
+
+

@@ -1,0 +1,306 @@
+"""client/ player, spectator, latency and connection pieces that need no server.
+
+The latency recorder against numpy's percentiles, the player's absolute schedule, the
+messages built from a DeviceSample (exact through the codec), the spectator's bookkeeping
+of batches and rosters, the latency table, and connection errors as one line.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+import time
+
+import numpy as np
+import pytest
+
+from client.builtin import builtin_motion_path
+from client.connection import SessionError, open_session
+from client.latency import LatencyRecorder, format_latency_table
+from client.player import Ticker, calibrate_message, device_poses, tracker_frame
+from client.sources.base import DeviceSample
+from client.sources.bvh_source import BvhSource
+from client.spectator import Spectator
+from protocol import (
+    PROTOCOL_VERSION,
+    AvatarBatch,
+    AvatarFrame,
+    AvatarInfo,
+    AvatarRoster,
+    Calibrate,
+    ClockEstimator,
+    Hello,
+    TrackerFrame,
+    decode,
+    encode,
+)
+
+
+# --------------------------------------------------------------------------- latency
+def test_recorder_percentiles_equal_numpy() -> None:
+    rng = np.random.default_rng(3)
+    a = rng.lognormal(-7.0, 0.5, 5000)  # seconds, ~1 ms with a tail
+    b = rng.uniform(0.0, 0.01, 777)
+    rec = LatencyRecorder(capacity=8)  # tiny, so appends grow the buffer many times
+    for x, y in zip(a, b, strict=False):
+        rec.add({"server": x, "capture_to_spectator": y})
+    rec.add_values("server", a[len(b):])
+    summary = rec.summary()
+    for stage, values in (("server", a), ("capture_to_spectator", b)):
+        expect = np.percentile(values, [50, 95, 99]) * 1e3
+        got = [summary[stage][k] for k in ("p50", "p95", "p99")]
+        np.testing.assert_allclose(got, expect, rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(rec.samples(stage), values)
+    assert rec.counts() == {"server": 5000, "capture_to_spectator": 777}
+    assert len(rec) == 5000
+
+
+def test_recorders_merge_over_all_samples() -> None:
+    rng = np.random.default_rng(4)
+    parts = [rng.exponential(0.001, n) for n in (10, 2000, 333)]
+    recs = []
+    for p in parts:
+        r = LatencyRecorder()
+        r.add_values("solve", p)
+        recs.append(r)
+    merged = LatencyRecorder.merged(recs)
+    every = np.concatenate(parts)
+    assert merged.summary()["solve"]["p99"] == pytest.approx(
+        float(np.percentile(every, 99)) * 1e3, abs=1e-12)
+    assert merged.counts() == {"solve": every.size}
+    assert recs[0].counts() == {"solve": 10}  # the parts are left as they were
+
+
+def test_empty_recorder() -> None:
+    rec = LatencyRecorder()
+    assert rec.summary() == {} and rec.counts() == {} and len(rec) == 0
+    assert rec.samples("server").size == 0
+
+
+def test_latency_table_aligned_in_pipeline_order() -> None:
+    summary = {"capture_to_spectator": {"p50": 1.23456, "p95": 2.0, "p99": 12.5},
+               "server": {"p50": 0.1, "p95": 0.25, "p99": float("nan")},
+               "capture_to_server": {"p50": -0.004, "p95": 0.5, "p99": 0.75}}
+    text = format_latency_table(summary, {"server": 28800, "capture_to_server": 28800,
+                                          "capture_to_spectator": 460800})
+    lines = text.splitlines()
+    assert lines[0].split() == ["stage", "samples", "p50", "ms", "p95", "ms", "p99", "ms"]
+    assert [ln.split()[0] for ln in lines[1:]] == ["capture_to_server", "server",
+                                                   "capture_to_spectator"]
+    assert lines[3].split()[1:] == ["460800", "1.235", "2.000", "12.500"]
+    assert lines[2].split()[-1] == "-"  # NaN: no value, not "nan"
+    assert lines[1].split()[2] == "-0.004"
+    # right-aligned numbers: every column ends at the same place on every line
+    ends = [_word_ends(ln) for ln in lines]
+    header_ends = [e for e, w in zip(ends[0], lines[0].split(), strict=True) if w != "p50"
+                   and w != "p95" and w != "p99"]
+    assert all(e[1:] == header_ends[1:] for e in ends[1:])
+    assert len({len(ln) for ln in lines}) == 1
+    plain = format_latency_table(summary, decimals=2).splitlines()
+    assert plain[0].split()[:2] == ["stage", "p50"] and plain[3].split()[1] == "1.23"
+
+
+def _word_ends(line: str) -> list[int]:
+    return [i + 1 for i, c in enumerate(line)
+            if c != " " and (i + 1 == len(line) or line[i + 1] == " ")]
+
+
+# --------------------------------------------------------------------------- ticker
+def test_ticker_slots_are_absolute() -> None:
+    t = Ticker(90.0, start=1000.0)
+    # k / rate, not a running sum of periods: no drift after a day of slots
+    assert t.slot_time(90 * 86400) == pytest.approx(1000.0 + 86400.0, abs=1e-9)
+    assert t.next_slot(-1, 1000.0) == 0
+    assert t.next_slot(0, 1000.0 + 0.2 / 90) == 1  # early: the next slot, waited for
+    for k in range(1, 2000):  # exactly at a slot time: that slot, whatever the rounding
+        assert t.next_slot(k - 1, t.slot_time(k)) == k
+        assert t.next_slot(k - 2, t.slot_time(k) - 1e-9) == k - 1
+
+
+def test_ticker_skips_late_slots_instead_of_bursting() -> None:
+    t = Ticker(100.0, start=0.0)
+    # served slot 2, woke at 5.5 periods: slot 5 now; 3 and 4 are skipped
+    assert t.next_slot(2, 0.055) == 5
+    assert t.next_slot(5, 0.0551) == 6  # then back on the grid
+
+
+def test_ticker_waits_on_the_schedule() -> None:
+    async def main() -> tuple[list[int], list[float], float]:
+        ticker = Ticker(50.0)  # 20 ms slots: room for a busy machine's wake-up jitter
+        slots, woke = [], []
+        k = await ticker.wait()  # slot 0 starts the schedule
+        for _ in range(8):
+            k = await ticker.wait(k)
+            slots.append(k)
+            woke.append(ticker.clock() - ticker.slot_time(k))
+        time.sleep(0.07)  # block the loop 3.5 periods: slots 9..11 pass
+        late = await ticker.wait(k)
+        slots.append(late)
+        return slots, woke, ticker.clock() - ticker.slot_time(late)
+
+    slots, woke, late_by = asyncio.run(main())
+    assert slots[:8] == list(range(1, 9))
+    assert slots[8] in (11, 12)  # the latest slot due, served at once; the rest skipped
+    # measured from the absolute slot times: never early, never (nearly) a period late
+    assert all(-1e-6 <= w < 0.015 for w in woke), woke
+    assert late_by < 0.02
+
+
+def test_shared_ticker_wakes_every_waiter_on_one_slot() -> None:
+    async def main() -> None:
+        ticker = Ticker(50.0)
+        await ticker.wait()
+        tasks = [asyncio.create_task(ticker.wait(0)) for _ in range(5)]
+        await asyncio.sleep(0)
+        assert list(ticker._slots) == [1]  # one future, one timer for all of them
+        tasks[0].cancel()  # one player leaving must not cancel the slot for the rest
+        results = await asyncio.gather(*tasks[1:])
+        assert results == [1, 1, 1, 1]
+        assert tasks[0].cancelled()
+
+    asyncio.run(main())
+
+
+def test_ticker_rejects_bad_rates() -> None:
+    for rate in (0.0, -5.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="positive"):
+            Ticker(rate)
+
+
+# --------------------------------------------------------------------------- messages
+ROLES = ("head", "hip", "left_hand", "right_hand", "left_foot", "right_foot")
+
+
+def _sample(seed: int = 0, roles: tuple[str, ...] = ROLES) -> DeviceSample:
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=(len(roles), 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    return DeviceSample(t_capture=12345.678901234, roles=roles,
+                        positions=rng.uniform(-2, 2, (len(roles), 3)), rotations=q)
+
+
+def test_tracker_frame_from_a_sample_round_trips_exactly() -> None:
+    s = _sample(1)
+    msg = tracker_frame(41, s, clock_offset=-3.25e-4)
+    assert msg.seq == 41 and msg.roles == ROLES
+    assert msg.t_capture == s.t_capture and msg.clock_offset == -3.25e-4
+    assert msg.t_capture_server == s.t_capture - 3.25e-4
+    np.testing.assert_array_equal(msg.positions, s.positions)
+    np.testing.assert_allclose(msg.rotations, s.rotations, rtol=0, atol=1e-15)
+    back = decode(encode(msg))
+    assert isinstance(back, TrackerFrame)
+    assert back.seq == msg.seq and back.roles == msg.roles
+    assert back.t_capture == msg.t_capture and back.clock_offset == msg.clock_offset
+    np.testing.assert_array_equal(back.poses, msg.poses)  # bit for bit
+    assert back.poses.dtype == np.float64 and back.poses.shape == (6, 7)
+
+
+def test_calibrate_from_a_sample_round_trips_exactly() -> None:
+    s = _sample(2, (*ROLES, "left_knee"))
+    msg = calibrate_message(s, clock_offset=0.5)
+    back = decode(encode(msg))
+    assert isinstance(back, Calibrate)
+    assert back.roles == s.roles and back.t_capture == s.t_capture
+    np.testing.assert_array_equal(back.poses, msg.poses)
+    np.testing.assert_array_equal(device_poses(s)[:, :3], s.positions)
+
+
+def test_messages_from_the_builtin_motion_source() -> None:
+    src = BvhSource(builtin_motion_path())
+    cal = calibrate_message(src.calibration(), 0.0)  # has every role calibration needs
+    sample = src.read()
+    assert sample is not None
+    frame = decode(encode(tracker_frame(0, sample, 0.0)))
+    assert isinstance(frame, TrackerFrame) and frame.roles == sample.roles
+    np.testing.assert_array_equal(frame.positions, sample.positions)
+    assert cal.roles == src.calibration().roles
+
+
+def test_a_bad_sample_is_refused_by_the_message() -> None:
+    s = _sample(3)
+    s.positions[2, 1] = np.nan
+    with pytest.raises(ValueError, match="left_hand"):
+        tracker_frame(0, s, 0.0)
+
+
+# --------------------------------------------------------------------------- spectator
+OFFSET = 100.0  # server clock - local clock
+
+
+def _frame(avatar_id: int, seq: int, t_capture: float) -> AvatarFrame:
+    return AvatarFrame(avatar_id=avatar_id, seq=seq, root=np.array([0.0, 1.0, 0.0]),
+                       rotations=np.tile([0.0, 0.0, 0.0, 1.0], (3, 1)),
+                       t_capture=t_capture, t_server_receive=t_capture + 0.001,
+                       t_solved=t_capture + 0.0012, t_sent=t_capture + 0.0015)
+
+
+def _info(avatar_id: int) -> AvatarInfo:
+    return AvatarInfo(avatar_id=avatar_id, display_name=f"p{avatar_id}",
+                      joint_names=("hips", "spine", "head"), parents=(-1, 0, 1),
+                      rest_offsets=np.array([[0, 1, 0], [0, 0.2, 0], [0, 0.5, 0]], float))
+
+
+def test_spectator_records_batches_on_the_server_clock() -> None:
+    spec = Spectator("ws://x", "room", "viewer")
+    clock = ClockEstimator()
+    spec.on_batch(AvatarBatch(frames=(_frame(1, 0, 200.0),)), 100.002, clock)
+    # not synced yet: only the stages that need no local clock
+    assert set(spec.stats.latency.stages) == {"capture_to_server", "solve", "server"}
+    clock.add(0.0, OFFSET, OFFSET, 0.0)  # a zero-RTT exchange: offset exactly 100
+    batch = decode(encode(AvatarBatch(frames=(_frame(1, 1, 200.0), _frame(2, 7, 200.0)))))
+    assert isinstance(batch, AvatarBatch)
+    spec.on_batch(batch, 100.003, clock)  # received at 200.003 server time
+    lat = spec.stats.latency
+    np.testing.assert_allclose(lat.samples("capture_to_spectator"), [0.003, 0.003],
+                               atol=1e-9)
+    np.testing.assert_allclose(lat.samples("network_to_spectator"), [0.0015, 0.0015],
+                               atol=1e-9)
+    assert lat.counts()["server"] == 3
+    assert spec.stats.frames_received == 3 and spec.stats.batches_received == 2
+    assert spec.stats.frames_per_avatar == {1: 2, 2: 1}
+    assert spec.latest[1].frame.seq == 1 and spec.latest[1].t_received == 100.003
+    assert spec.latest[2].frame.seq == 7
+
+
+def test_spectator_roster_adds_updates_and_removes() -> None:
+    spec = Spectator("ws://x", "room", "viewer", max_rate_hz=30.0)
+    assert spec.hello.max_rate_hz == 30.0 and spec.hello.role == "spectator"
+    spec.on_roster(AvatarRoster(avatars=(_info(1), _info(2))))
+    spec.on_batch(AvatarBatch(frames=(_frame(2, 0, 1.0),)), 0.0, ClockEstimator())
+    spec.on_roster(AvatarRoster(avatars=(_info(1),), removed=(2,)))
+    assert sorted(spec.roster) == [1] and 2 not in spec.latest
+    assert spec.stats.frames_per_avatar[2] == 1  # counts outlive the avatar
+
+
+# --------------------------------------------------------------------------- connection
+def _hello() -> Hello:
+    return Hello(protocol_version=PROTOCOL_VERSION, role="spectator", room="r",
+                 display_name="v")
+
+
+def _closed_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_connection_refused_is_one_clear_line() -> None:
+    url = f"ws://127.0.0.1:{_closed_port()}"
+    with pytest.raises(SessionError) as info:
+        asyncio.run(open_session(url, _hello(), timeout=2.0))
+    text = str(info.value)
+    assert text.startswith(url + ": ") and "refused" in text and "\n" not in text
+    assert info.value.url == url and info.value.code is None
+
+
+def test_not_a_websocket_url() -> None:
+    with pytest.raises(SessionError, match="not a websocket URL"):
+        asyncio.run(open_session("localhost:8765", _hello()))
+
+
+def test_an_invalid_hello_is_one_clear_line() -> None:
+    with pytest.raises(SessionError, match=r"^ws://h:1: cannot join: hello\.room: ") as info:
+        Spectator("ws://h:1", "no spaces allowed", "viewer")
+    assert "\n" not in str(info.value)
+    with pytest.raises(SessionError, match="max_rate_hz"):
+        Spectator("ws://h:1", "room", "viewer", max_rate_hz=-1.0)
