@@ -1,0 +1,27 @@
+"""`posecast demo` end to end: a server process, players and spectators on loopback."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from client.cli import main
+
+
+def test_demo_delivers_every_solved_frame_to_every_spectator(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["demo", "--players", "2", "--spectators", "2", "--seconds", "2",
+                 "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["players"] == 2 and doc["spectators"] == 2
+    # two players at 90 Hz for two seconds (the schedule may skip a late slot or two)
+    assert 330 <= doc["frames_sent"] <= 362
+    assert doc["frames_solved"] >= doc["frames_sent"] - 8  # superseded ones are counted
+    assert doc["frames_delivered"] == doc["frames_solved"] * 2
+    stages = doc["latency_ms"]
+    for stage in ("capture_to_server", "server", "capture_to_spectator"):
+        p = stages[stage]
+        assert 0.0 < p["p50"] <= p["p95"] <= p["p99"], stage
+    # each stage is part of the whole: receive-to-sent is inside capture-to-spectator
+    assert stages["server"]["p50"] < stages["capture_to_spectator"]["p50"]
