@@ -1,12 +1,20 @@
-"""Compiled building blocks of the solvers: quaternion math on array views, forward
-kinematics, joint limits, chain Jacobians and damped least squares.
+"""Compiled building blocks of the solvers: quaternion math, forward kinematics, joint
+limits, chain Jacobians and damped least squares.
 
 Why compiled (numba): a solve walks joint chains and iterates, sequential work on
-4-element arrays where each numpy call would cost about a microsecond of overhead. Every
-function here works on one avatar's arrays and writes into preallocated outputs, so a
-solve allocates almost nothing; the batched drivers in ``solver/ik/`` loop over avatars
-inside compiled code. The numpy versions in ``solver/rotations.py`` are the reference:
-the tests check these against them.
+4-element arrays where each numpy call would cost about a microsecond of overhead. The
+batched drivers in ``solver/ik/`` loop over avatars inside compiled code. The numpy
+versions in ``solver/rotations.py`` are the reference: the tests check these against them.
+
+Why tuples, row indices and inlining (measured on the built-in walk): a small
+``np.empty`` costs ~17 ns (malloc and free), and arrays or views passed to a compiled call
+cost atomic reference counting (a Jacobian column took 49 ns called, 12 ns inlined); the
+two were about 40% of a solve. So the inner loops (FK, Jacobian columns, steps and
+clamps per joint) hold quaternions as tuples of floats, which live in registers, index
+the (J, 4) arrays by joint instead of taking row views, and the kernels called per joint
+or per iteration are inlined (``inline="always"``). The array-view functions
+(``qmul(a, b, out)`` ...) remain for the solvers' own code; they compute with the same
+tuple functions, so both give the same bits.
 
 Conventions: quaternions x, y, z, w; a joint's local rotation is ``pre * D * post`` with
 D its deviation from the canonical pose (see ``solver/rig.py``).
@@ -18,121 +26,190 @@ import math
 
 import numpy as np
 from numba import njit
+from numpy.typing import NDArray
 
 EPS = 1e-12
 
+# The batch drivers solve avatars in parallel (numba prange: one avatar per task, each
+# with its own work arrays, so results are bit for bit those of a serial loop) from this
+# many avatars on; below it, starting the worker threads costs more than it saves.
+PARALLEL_MIN_AVATARS = 2
 
-# --- quaternions and vectors on array views ---------------------------------------------
+Quat = tuple[float, float, float, float]
+Vec3 = tuple[float, float, float]
+SwingTwist = tuple[float, float, float, float, float, float, float]  # see swing_twist
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+# --- quaternions and vectors as tuples --------------------------------------------------
+
+@njit(cache=True, inline="always")
+def row4(a: Array, i: int) -> Quat:
+    return (a[i, 0], a[i, 1], a[i, 2], a[i, 3])
+
+
+@njit(cache=True, inline="always")
+def row3(a: Array, i: int) -> Vec3:
+    return (a[i, 0], a[i, 1], a[i, 2])
+
+
+@njit(cache=True, inline="always")
+def set_row4(a: Array, i: int, t: Quat) -> None:
+    a[i, 0] = t[0]
+    a[i, 1] = t[1]
+    a[i, 2] = t[2]
+    a[i, 3] = t[3]
+
+
+@njit(cache=True, inline="always")
+def vec4(a: Array) -> Quat:
+    return (a[0], a[1], a[2], a[3])
+
+
+@njit(cache=True, inline="always")
+def vec3(a: Array) -> Vec3:
+    return (a[0], a[1], a[2])
+
+
+@njit(cache=True, inline="always")
+def set_vec4(a: Array, t: Quat) -> None:
+    a[0] = t[0]
+    a[1] = t[1]
+    a[2] = t[2]
+    a[3] = t[3]
+
+
+@njit(cache=True, inline="always")
+def set_vec3(a: Array, t: Vec3) -> None:
+    a[0] = t[0]
+    a[1] = t[1]
+    a[2] = t[2]
+
+
+@njit(cache=True)
+def tmul(a: Quat, b: Quat) -> Quat:
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return (aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+            aw * bw - ax * bx - ay * by - az * bz)
+
+
+@njit(cache=True)
+def tconj(a: Quat) -> Quat:
+    return (-a[0], -a[1], -a[2], a[3])
+
+
+@njit(cache=True)
+def tnormalize(q: Quat) -> Quat:
+    x, y, z, w = q
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    if n > EPS:
+        return (x / n, y / n, z / n, w / n)
+    return q
+
+
+@njit(cache=True)
+def trotate(q: Quat, v: Vec3) -> Vec3:
+    """R(q) v"""
+    ux, uy, uz, w = q
+    vx, vy, vz = v
+    tx = 2.0 * (uy * vz - uz * vy)
+    ty = 2.0 * (uz * vx - ux * vz)
+    tz = 2.0 * (ux * vy - uy * vx)
+    return (vx + w * tx + (uy * tz - uz * ty),
+            vy + w * ty + (uz * tx - ux * tz),
+            vz + w * tz + (ux * ty - uy * tx))
+
+
+@njit(cache=True)
+def tfrom_rotvec(x: float, y: float, z: float) -> Quat:
+    a = math.sqrt(x * x + y * y + z * z)
+    if a < 1e-8:
+        k = 0.5 - a * a / 48.0
+        w = 1.0 - a * a / 8.0
+    else:
+        k = math.sin(0.5 * a) / a
+        w = math.cos(0.5 * a)
+    return (x * k, y * k, z * k, w)
+
+
+@njit(cache=True)
+def tto_rotvec(q: Quat) -> Vec3:
+    """Rotation vector of q (shorter way round, angle in [0, pi])."""
+    x, y, z, w = q
+    if w < 0.0:
+        x, y, z, w = -x, -y, -z, -w
+    s = math.sqrt(x * x + y * y + z * z)
+    k = 2.0 if s < 1e-12 else 2.0 * math.atan2(s, w) / s
+    return (x * k, y * k, z * k)
+
+
+@njit(cache=True)
+def taxis_angle(ax: float, ay: float, az: float, angle: float) -> Quat:
+    """Rotation about a unit axis."""
+    s = math.sin(0.5 * angle)
+    return (ax * s, ay * s, az * s, math.cos(0.5 * angle))
+
+
+# --- the same on array views (outputs written in place) ----------------------------------
 
 @njit(cache=True, inline="always")
 def qmul(a, b, out):
-    ax, ay, az, aw = a[0], a[1], a[2], a[3]
-    bx, by, bz, bw = b[0], b[1], b[2], b[3]
-    out[0] = aw * bx + ax * bw + ay * bz - az * by
-    out[1] = aw * by - ax * bz + ay * bw + az * bx
-    out[2] = aw * bz + ax * by - ay * bx + az * bw
-    out[3] = aw * bw - ax * bx - ay * by - az * bz
+    set_vec4(out, tmul(vec4(a), vec4(b)))
 
 
 @njit(cache=True, inline="always")
 def qconj(a, out):
-    out[0] = -a[0]
-    out[1] = -a[1]
-    out[2] = -a[2]
-    out[3] = a[3]
+    set_vec4(out, tconj(vec4(a)))
 
 
 @njit(cache=True, inline="always")
 def qmul_conj_left(a, b, out):
     """out = conj(a) * b"""
-    ax, ay, az, aw = -a[0], -a[1], -a[2], a[3]
-    bx, by, bz, bw = b[0], b[1], b[2], b[3]
-    out[0] = aw * bx + ax * bw + ay * bz - az * by
-    out[1] = aw * by - ax * bz + ay * bw + az * bx
-    out[2] = aw * bz + ax * by - ay * bx + az * bw
-    out[3] = aw * bw - ax * bx - ay * by - az * bz
+    set_vec4(out, tmul(tconj(vec4(a)), vec4(b)))
 
 
 @njit(cache=True, inline="always")
 def qmul_conj_right(a, b, out):
     """out = a * conj(b)"""
-    ax, ay, az, aw = a[0], a[1], a[2], a[3]
-    bx, by, bz, bw = -b[0], -b[1], -b[2], b[3]
-    out[0] = aw * bx + ax * bw + ay * bz - az * by
-    out[1] = aw * by - ax * bz + ay * bw + az * bx
-    out[2] = aw * bz + ax * by - ay * bx + az * bw
-    out[3] = aw * bw - ax * bx - ay * by - az * bz
+    set_vec4(out, tmul(vec4(a), tconj(vec4(b))))
 
 
 @njit(cache=True, inline="always")
 def qnormalize(q):
-    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-    if n > EPS:
-        q[0] /= n
-        q[1] /= n
-        q[2] /= n
-        q[3] /= n
+    set_vec4(q, tnormalize(vec4(q)))
 
 
 @njit(cache=True, inline="always")
 def qrotate(q, v, out):
-    """out = R(q) v  (out may not alias v)"""
-    ux, uy, uz, w = q[0], q[1], q[2], q[3]
-    tx = 2.0 * (uy * v[2] - uz * v[1])
-    ty = 2.0 * (uz * v[0] - ux * v[2])
-    tz = 2.0 * (ux * v[1] - uy * v[0])
-    out[0] = v[0] + w * tx + (uy * tz - uz * ty)
-    out[1] = v[1] + w * ty + (uz * tx - ux * tz)
-    out[2] = v[2] + w * tz + (ux * ty - uy * tx)
+    """out = R(q) v"""
+    set_vec3(out, trotate(vec4(q), vec3(v)))
 
 
 @njit(cache=True, inline="always")
 def qrotate_inv(q, v, out):
     """out = R(q)^T v"""
-    ux, uy, uz, w = -q[0], -q[1], -q[2], q[3]
-    tx = 2.0 * (uy * v[2] - uz * v[1])
-    ty = 2.0 * (uz * v[0] - ux * v[2])
-    tz = 2.0 * (ux * v[1] - uy * v[0])
-    out[0] = v[0] + w * tx + (uy * tz - uz * ty)
-    out[1] = v[1] + w * ty + (uz * tx - ux * tz)
-    out[2] = v[2] + w * tz + (ux * ty - uy * tx)
+    set_vec3(out, trotate(tconj(vec4(q)), vec3(v)))
 
 
 @njit(cache=True, inline="always")
 def qfrom_rotvec(x, y, z, out):
-    a = math.sqrt(x * x + y * y + z * z)
-    if a < 1e-8:
-        k = 0.5 - a * a / 48.0
-        out[3] = 1.0 - a * a / 8.0
-    else:
-        k = math.sin(0.5 * a) / a
-        out[3] = math.cos(0.5 * a)
-    out[0] = x * k
-    out[1] = y * k
-    out[2] = z * k
+    set_vec4(out, tfrom_rotvec(x, y, z))
 
 
 @njit(cache=True, inline="always")
 def qto_rotvec(q, out):
     """Rotation vector of q (shorter way round, angle in [0, pi])."""
-    x, y, z, w = q[0], q[1], q[2], q[3]
-    if w < 0.0:
-        x, y, z, w = -x, -y, -z, -w
-    s = math.sqrt(x * x + y * y + z * z)
-    k = 2.0 if s < 1e-12 else 2.0 * math.atan2(s, w) / s
-    out[0] = x * k
-    out[1] = y * k
-    out[2] = z * k
+    set_vec3(out, tto_rotvec(vec4(q)))
 
 
 @njit(cache=True, inline="always")
 def qaxis_angle(ax, ay, az, angle, out):
     """Rotation about a unit axis."""
-    s = math.sin(0.5 * angle)
-    out[0] = ax * s
-    out[1] = ay * s
-    out[2] = az * s
-    out[3] = math.cos(0.5 * angle)
+    set_vec4(out, taxis_angle(ax, ay, az, angle))
 
 
 @njit(cache=True, inline="always")
@@ -168,33 +245,42 @@ def qbetween(u, v, out):
 
 # --- forward kinematics ----------------------------------------------------------------
 
+@njit(cache=True, inline="always")
+def fk_joint(parents: IntArray, offsets: Array, q: Array, gq: Array, gp: Array,
+             j: int) -> None:
+    """Global rotation and position of joint j from its parent's."""
+    p = parents[j]
+    g = row4(gq, p)
+    set_row4(gq, j, tmul(g, row4(q, j)))
+    t = trotate(g, row3(offsets, j))
+    gp[j, 0] = gp[p, 0] + t[0]
+    gp[j, 1] = gp[p, 1] + t[1]
+    gp[j, 2] = gp[p, 2] + t[2]
+
+
+@njit(cache=True)
+def fk_upto(parents: IntArray, offsets: Array, q: Array, root: Array, gq: Array,
+            gp: Array, last: int) -> None:
+    """Globals of joints 0..last (parents come before their children)."""
+    set_row4(gq, 0, row4(q, 0))
+    gp[0, 0] = root[0]
+    gp[0, 1] = root[1]
+    gp[0, 2] = root[2]
+    for j in range(1, last + 1):
+        fk_joint(parents, offsets, q, gq, gp, j)
+
+
 @njit(cache=True)
 def fk(parents, offsets, q, root, gq, gp):
     """Global rotations gq (J,4) and positions gp (J,3) of one avatar."""
-    tmp = np.empty(3)
-    gq[0, :] = q[0]
-    gp[0, :] = root
-    for j in range(1, parents.shape[0]):
-        p = parents[j]
-        qmul(gq[p], q[j], gq[j])
-        qrotate(gq[p], offsets[j], tmp)
-        gp[j, 0] = gp[p, 0] + tmp[0]
-        gp[j, 1] = gp[p, 1] + tmp[1]
-        gp[j, 2] = gp[p, 2] + tmp[2]
+    fk_upto(parents, offsets, q, root, gq, gp, parents.shape[0] - 1)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def fk_joints(parents, offsets, q, gq, gp, joints, n):
     """Update globals of the first n listed joints, in order (a chain, parents first)."""
-    tmp = np.empty(3)
     for i in range(n):
-        j = joints[i]
-        p = parents[j]
-        qmul(gq[p], q[j], gq[j])
-        qrotate(gq[p], offsets[j], tmp)
-        gp[j, 0] = gp[p, 0] + tmp[0]
-        gp[j, 1] = gp[p, 1] + tmp[1]
-        gp[j, 2] = gp[p, 2] + tmp[2]
+        fk_joint(parents, offsets, q, gq, gp, joints[i])
 
 
 @njit(cache=True)
@@ -208,13 +294,52 @@ def fk_batch(parents, offsets, q, root, gq, gp):
 # --- joint limits ----------------------------------------------------------------------
 
 @njit(cache=True)
-def clamp_joint(q, pre, post, lo, hi, tmp4a, tmp4b):
-    """Clamp one local rotation q (in place) to its limits: D = pre^-1 q post^-1 split
-    into swing (x, z) and twist about y, each clamped, recomposed. Returns True when
-    anything was clamped."""
-    qmul_conj_left(pre, q, tmp4a)
-    qmul_conj_right(tmp4a, post, tmp4b)  # tmp4b = D
-    x, y, z, w = tmp4b[0], tmp4b[1], tmp4b[2], tmp4b[3]
+def composed(pre: Quat, post: Quat, sx: float, ty: float, sz: float) -> Quat:
+    """pre * (exp(sx, 0, sz) * Ry(ty)) * post"""
+    d = tmul(tfrom_rotvec(sx, 0.0, sz), taxis_angle(0.0, 1.0, 0.0, ty))
+    return tmul(tmul(pre, d), post)
+
+
+@njit(cache=True)
+def _scaled_within(v: float, kmin: float, kmax: float, lo: float, hi: float) -> bool:
+    """Is v * k surely within [lo, hi] for every k in [kmin, kmax] (kmin > 0)? (Rounded
+    products are monotonic in k, so checking the two ends is enough; NaN gives False.)"""
+    if v >= 0.0:
+        return lo <= v * kmin and v * kmax <= hi
+    return lo <= v * kmax and v * kmin <= hi
+
+
+@njit(cache=True)
+def surely_within(st: SwingTwist, lo: Vec3, hi: Vec3) -> bool:
+    """True only if ``clamped_exactly`` would find nothing to clamp; False when unsure.
+    Most clamps change nothing, and this spares them both atan2 calls.
+
+    For a half angle p = atan2(a, c) in [0, pi/2) with r = |(a, c)|: sin p <= p <= tan p,
+    so p / a lies in [1 / r, 1 / c], and 1 / r >= 2 / (1 + r^2). The margins (1e-12,
+    relative) dwarf the rounding of atan2 and of the products (~1e-16)."""
+    sx, sy, sz, sw, s, ty, tw = st
+    if s < 1e-12 or not sw > 0.0 or not tw > 0.0:
+        return False  # k is exact (no atan2 to spare) or the bounds are useless
+    # swing: k = 2 atan2(s, sw) / s, rotation vector (sx k, sy k, sz k)
+    kmin = 4.0 / (1.0 + s * s + sw * sw) * (1.0 - 1e-12)
+    kmax = 2.0 / sw * (1.0 + 1e-12)
+    if not (_scaled_within(sx, kmin, kmax, lo[0], hi[0])
+            and _scaled_within(sz, kmin, kmax, lo[2], hi[2])
+            and abs(sy) * kmax < 1e-9):
+        return False
+    # twist = 2 atan2(ty, tw), with tw > 0: exactly +-0 when ty is
+    if ty == 0.0:
+        return lo[1] <= 0.0 <= hi[1]
+    tmin = 4.0 / (1.0 + ty * ty + tw * tw) * (1.0 - 1e-12)
+    tmax = 2.0 / tw * (1.0 + 1e-12)
+    return _scaled_within(ty, tmin, tmax, lo[1], hi[1])
+
+
+@njit(cache=True)
+def swing_twist(q: Quat, pre: Quat, post: Quat) -> SwingTwist:
+    """D = pre^-1 q post^-1 split into twist about y and swing: (sx, sy, sz, sw) the
+    swing with sw >= 0, s = |(sx, sy, sz)|, (ty, tw) the twist's y and w, tw >= 0."""
+    x, y, z, w = tmul(tmul(tconj(pre), q), tconj(post))  # D
     if w < 0.0:
         x, y, z, w = -x, -y, -z, -w
     # twist about y: (0, y, 0, w) normalised; swing = D * twist^-1
@@ -223,8 +348,8 @@ def clamp_joint(q, pre, post, lo, hi, tmp4a, tmp4b):
         ty_c, tw_c = 0.0, 1.0
     else:
         ty_c, tw_c = y / tn, w / tn
-    twist = 2.0 * math.atan2(ty_c, tw_c)
-    # swing = D * conj(twist), twist = (0, ty_c, 0, tw_c)
+    # swing = D * conj(twist), twist = (0, ty_c, 0, tw_c); kept term by term (zeros
+    # included) so that results stay bit for bit those of earlier versions
     sx = w * 0.0 + x * tw_c + y * 0.0 - z * (-ty_c)
     sy = w * (-ty_c) - x * 0.0 + y * tw_c + z * 0.0
     sz = w * 0.0 + x * (-ty_c) - y * 0.0 + z * tw_c
@@ -233,46 +358,69 @@ def clamp_joint(q, pre, post, lo, hi, tmp4a, tmp4b):
     s = math.sqrt(sx * sx + sy * sy + sz * sz)
     if sw < 0.0:
         sx, sy, sz, sw = -sx, -sy, -sz, -sw
+    return (sx, sy, sz, sw, s, ty_c, tw_c)
+
+
+@njit(cache=True)
+def clamped_exactly(q: Quat, pre: Quat, post: Quat, lo: Vec3, hi: Vec3,
+                    st: SwingTwist) -> tuple[bool, Quat]:
+    """``clamped`` without its shortcut: swing (x, z) and twist angles each clamped."""
+    sx, sy, sz, sw, s, ty_c, tw_c = st
+    twist = 2.0 * math.atan2(ty_c, tw_c)
     k = 2.0 if s < 1e-12 else 2.0 * math.atan2(s, sw) / s
     rx, rz = sx * k, sz * k
     cx = min(max(rx, lo[0]), hi[0])
     ct = min(max(twist, lo[1]), hi[1])
     cz = min(max(rz, lo[2]), hi[2])
     if cx == rx and ct == twist and cz == rz and abs(sy * k) < 1e-9:
-        return False
-    qfrom_rotvec(cx, 0.0, cz, tmp4a)
-    qaxis_angle(0.0, 1.0, 0.0, ct, tmp4b)
-    qmul(tmp4a, tmp4b, q)  # q = D'
-    qmul(pre, q, tmp4a)
-    qmul(tmp4a, post, q)
-    return True
+        return False, q
+    return True, composed(pre, post, cx, ct, cz)
 
 
 @njit(cache=True)
+def clamped(q: Quat, pre: Quat, post: Quat, lo: Vec3, hi: Vec3) -> tuple[bool, Quat]:
+    """A local rotation q clamped to its limits: D = pre^-1 q post^-1 split into swing
+    (x, z) and twist about y, each clamped, recomposed. Returns (anything clamped, q)."""
+    st = swing_twist(q, pre, post)
+    if surely_within(st, lo, hi):
+        return False, q
+    return clamped_exactly(q, pre, post, lo, hi, st)
+
+
+@njit(cache=True, inline="always")
+def clamp_joint_at(q: Array, j: int, pre: Array, post: Array, lo: Array,
+                   hi: Array) -> bool:
+    """Clamp joint j's local rotation q[j] (in place) to its limits; True if clamped."""
+    changed, c = clamped(row4(q, j), row4(pre, j), row4(post, j), row3(lo, j), row3(hi, j))
+    if changed:
+        set_row4(q, j, c)
+    return changed
+
+
+@njit(cache=True, inline="always")
+def clamp_joint(q, pre, post, lo, hi, tmp4a, tmp4b):
+    """Clamp one local rotation q (in place) to its limits (see ``clamped``). Returns True
+    when anything was clamped. tmp4a, tmp4b: no longer used, kept for the callers."""
+    changed, c = clamped(vec4(q), vec4(pre), vec4(post), vec3(lo), vec3(hi))
+    if changed:
+        set_vec4(q, c)
+    return changed
+
+
+@njit(cache=True, inline="always")
 def compose_joint(pre, post, sx, ty, sz, out, tmp4a, tmp4b):
-    """out = pre * (exp(sx, 0, sz) * Ry(ty)) * post"""
-    qfrom_rotvec(sx, 0.0, sz, tmp4a)
-    qaxis_angle(0.0, 1.0, 0.0, ty, tmp4b)
-    qmul(tmp4a, tmp4b, out)
-    qmul(pre, out, tmp4a)
-    qmul(tmp4a, post, out)
+    """out = pre * (exp(sx, 0, sz) * Ry(ty)) * post (tmp4a, tmp4b: no longer used)"""
+    set_vec4(out, composed(vec4(pre), vec4(post), sx, ty, sz))
 
 
 # --- chains: error, Jacobian, damped least squares ---------------------------------------
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def effector_error(gq, gp, eff, target, w_rot, e):
     """6-vector [target position - position; w_rot * rotation vector to target]; returns
     its norm."""
-    tq = np.empty(4)
-    tq[0] = target[3]
-    tq[1] = target[4]
-    tq[2] = target[5]
-    tq[3] = target[6]
-    d = np.empty(4)
-    qmul_conj_right(tq, gq[eff], d)
-    rv = np.empty(3)
-    qto_rotvec(d, rv)
+    tq = (target[3], target[4], target[5], target[6])
+    rv = tto_rotvec(tmul(tq, tconj(row4(gq, eff))))
     e[0] = target[0] - gp[eff, 0]
     e[1] = target[1] - gp[eff, 1]
     e[2] = target[2] - gp[eff, 2]
@@ -282,93 +430,97 @@ def effector_error(gq, gp, eff, target, w_rot, e):
     return math.sqrt(e[0] ** 2 + e[1] ** 2 + e[2] ** 2 + e[3] ** 2 + e[4] ** 2 + e[5] ** 2)
 
 
-@njit(cache=True)
-def joint_axis_world(gq, post, j, axis, out, tmp4):
+@njit(cache=True, inline="always")
+def joint_axis_world(gq: Array, post: Array, j: int, axis: int) -> Vec3:
     """World direction of limit-frame axis (0 x, 1 y, 2 z) of joint j: R(G_j post^-1) e_axis."""
-    qmul_conj_right(gq[j], post, tmp4)
-    e = np.zeros(3)
-    e[axis] = 1.0
-    qrotate(tmp4, e, out)
+    e = (1.0 if axis == 0 else 0.0, 1.0 if axis == 1 else 0.0, 1.0 if axis == 2 else 0.0)
+    return trotate(tmul(row4(gq, j), tconj(row4(post, j))), e)
 
 
-@njit(cache=True)
-def jacobian_column(gq, gp, post, j, axis, eff, w_rot, col):
-    """Column of eq. 7: [a x (p_eff - p_j); w_rot * a] for limit axis `axis` of joint j."""
-    a = np.empty(3)
-    tmp4 = np.empty(4)
-    joint_axis_world(gq, post, j, axis, a, tmp4)
+@njit(cache=True, inline="always")
+def jacobian_column(gq: Array, gp: Array, post: Array, j: int, axis: int, eff: int,
+                    w_rot: float, Jm: Array, m: int) -> None:
+    """Column m of Jm, eq. 7: [a x (p_eff - p_j); w_rot * a] for limit axis `axis` of
+    joint j."""
+    a = joint_axis_world(gq, post, j, axis)
     rx = gp[eff, 0] - gp[j, 0]
     ry = gp[eff, 1] - gp[j, 1]
     rz = gp[eff, 2] - gp[j, 2]
-    col[0] = a[1] * rz - a[2] * ry
-    col[1] = a[2] * rx - a[0] * rz
-    col[2] = a[0] * ry - a[1] * rx
-    col[3] = w_rot * a[0]
-    col[4] = w_rot * a[1]
-    col[5] = w_rot * a[2]
+    Jm[0, m] = a[1] * rz - a[2] * ry
+    Jm[1, m] = a[2] * rx - a[0] * rz
+    Jm[2, m] = a[0] * ry - a[1] * rx
+    Jm[3, m] = w_rot * a[0]
+    Jm[4, m] = w_rot * a[1]
+    Jm[5, m] = w_rot * a[2]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def solve_spd(A, b, n, x):
-    """Solve A x = b for a small symmetric positive definite n x n A (Cholesky, in place
-    on a copy). Returns False if A is not positive definite."""
-    L = np.zeros((n, n))
+    """Solve A x = b for a small symmetric positive definite n x n A by Cholesky. A's
+    lower triangle is overwritten with the factor L (no scratch to allocate); x may not
+    alias b. Returns False if A is not positive definite."""
     for i in range(n):
         for k in range(i + 1):
             s = A[i, k]
             for m in range(k):
-                s -= L[i, m] * L[k, m]
+                s -= A[i, m] * A[k, m]
             if i == k:
                 if s <= 0.0:
                     return False
-                L[i, i] = math.sqrt(s)
+                A[i, i] = math.sqrt(s)
             else:
-                L[i, k] = s / L[k, k]
-    y = np.empty(n)
-    for i in range(n):
+                A[i, k] = s / A[k, k]
+    for i in range(n):  # L y = b, y kept in x
         s = b[i]
         for m in range(i):
-            s -= L[i, m] * y[m]
-        y[i] = s / L[i, i]
-    for i in range(n - 1, -1, -1):
-        s = y[i]
+            s -= A[i, m] * x[m]
+        x[i] = s / A[i, i]
+    for i in range(n - 1, -1, -1):  # L^T x = y
+        s = x[i]
         for m in range(i + 1, n):
-            s -= L[m, i] * x[m]
-        x[i] = s / L[i, i]
+            s -= A[m, i] * x[m]
+        x[i] = s / A[i, i]
     return True
 
 
 @njit(cache=True)
+def stepped(q: Quat, pre: Quat, post: Quat, dx: float, dy: float, dz: float) -> Quat:
+    """pre * (D * exp(dx, dy, dz)) * post, normalised, with D = pre^-1 q post^-1."""
+    d = tmul(tmul(tconj(pre), q), tconj(post))
+    d = tmul(d, tfrom_rotvec(dx, dy, dz))
+    return tnormalize(tmul(tmul(pre, d), post))
+
+
+@njit(cache=True, inline="always")
+def step_joint_at(q: Array, j: int, pre: Array, post: Array, dx: float, dy: float,
+                  dz: float) -> None:
+    """Turn joint j (in place) by a small rotation about its own limit-frame axes."""
+    set_row4(q, j, stepped(row4(q, j), row4(pre, j), row4(post, j), dx, dy, dz))
+
+
+@njit(cache=True, inline="always")
 def apply_deviation_step(q, pre, post, dx, dy, dz, tmp4a, tmp4b):
     """q = pre * (D * exp(dx, dy, dz)) * post, with D = pre^-1 q post^-1: turn the joint
-    by a small rotation about its own limit-frame axes."""
-    qmul_conj_left(pre, q, tmp4a)
-    qmul_conj_right(tmp4a, post, tmp4b)  # D
-    qfrom_rotvec(dx, dy, dz, tmp4a)
-    qmul(tmp4b, tmp4a, q)  # D'
-    qmul(pre, q, tmp4a)
-    qmul(tmp4a, post, q)
-    qnormalize(q)
+    by a small rotation about its own limit-frame axes (tmp4a, tmp4b: no longer used)."""
+    set_vec4(q, stepped(vec4(q), vec4(pre), vec4(post), dx, dy, dz))
+
+
+@njit(cache=True)
+def dls_scratch(max_cols: int) -> tuple[Array, IntArray, IntArray, Array, Array, Array]:
+    """Work arrays of ``dls_chain`` for chains of up to max_cols degrees of freedom:
+    allocated once per avatar, not per chain and iteration."""
+    return (np.empty((6, max_cols)), np.empty(max_cols, dtype=np.int64),
+            np.empty(max_cols, dtype=np.int64), np.empty((6, 6)), np.empty(6), np.empty(6))
 
 
 @njit(cache=True)
 def dls_chain(parents, offsets, q, gq, gp, pre, post, lo, hi, dofmask,
-              chain, n, target, w_rot, lam, max_iter, eps):
+              chain, n, target, w_rot, lam, max_iter, eps, scratch):
     """Damped least squares over every degree of freedom of a chain (parents first, the
     effector last): dtheta = J^T (J J^T + lam^2 I)^-1 e, then clamp to the limits.
-    Returns the number of iterations used."""
+    ``scratch`` comes from ``dls_scratch``. Returns the number of iterations used."""
+    Jm, cols_joint, cols_axis, A, y, e = scratch
     eff = chain[n - 1]
-    e = np.empty(6)
-    m_max = 3 * n
-    Jm = np.empty((6, m_max))
-    col = np.empty(6)
-    cols_joint = np.empty(m_max, dtype=np.int64)
-    cols_axis = np.empty(m_max, dtype=np.int64)
-    A = np.empty((6, 6))
-    y = np.empty(6)
-    dtheta = np.empty(3)
-    t4a = np.empty(4)
-    t4b = np.empty(4)
     it = 0
     while it < max_iter:
         fk_joints(parents, offsets, q, gq, gp, chain, n)
@@ -380,9 +532,7 @@ def dls_chain(parents, offsets, q, gq, gp, pre, post, lo, hi, dofmask,
             j = chain[i]
             for ax in range(3):
                 if dofmask[j, ax]:
-                    jacobian_column(gq, gp, post[j], j, ax, eff, w_rot, col)
-                    for r in range(6):
-                        Jm[r, m] = col[r]
+                    jacobian_column(gq, gp, post, j, ax, eff, w_rot, Jm, m)
                     cols_joint[m] = j
                     cols_axis[m] = ax
                     m += 1
@@ -397,56 +547,50 @@ def dls_chain(parents, offsets, q, gq, gp, pre, post, lo, hi, dofmask,
         if not solve_spd(A, e, 6, y):
             break
         k = 0
-        while k < m:
+        while k < m:  # the columns of one joint are adjacent
             j = cols_joint[k]
-            dtheta[0] = 0.0
-            dtheta[1] = 0.0
-            dtheta[2] = 0.0
+            d0 = 0.0
+            d1 = 0.0
+            d2 = 0.0
             while k < m and cols_joint[k] == j:
                 s = 0.0
                 for r in range(6):
                     s += Jm[r, k] * y[r]
-                dtheta[cols_axis[k]] = s
+                if cols_axis[k] == 0:
+                    d0 = s
+                elif cols_axis[k] == 1:
+                    d1 = s
+                else:
+                    d2 = s
                 k += 1
-            apply_deviation_step(q[j], pre[j], post[j], dtheta[0], dtheta[1], dtheta[2],
-                                 t4a, t4b)
-            clamp_joint(q[j], pre[j], post[j], lo[j], hi[j], t4a, t4b)
+            step_joint_at(q, j, pre, post, d0, d1, d2)
+            clamp_joint_at(q, j, pre, post, lo, hi)
         it += 1
     return it
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def set_effector_rotation(parents, q, gq, pre, post, lo, hi, j, target):
     """Turn joint j so that its global rotation is the target's (x y z w at target[3:7]),
     within its limits."""
-    tq = np.empty(4)
-    tq[0] = target[3]
-    tq[1] = target[4]
-    tq[2] = target[5]
-    tq[3] = target[6]
-    qmul_conj_left(gq[parents[j]], tq, q[j])
-    qnormalize(q[j])
-    t4a = np.empty(4)
-    t4b = np.empty(4)
-    clamp_joint(q[j], pre[j], post[j], lo[j], hi[j], t4a, t4b)
-    qmul(gq[parents[j]], q[j], gq[j])
+    g = row4(gq, parents[j])
+    tq = (target[3], target[4], target[5], target[6])
+    set_row4(q, j, tnormalize(tmul(tconj(g), tq)))
+    clamp_joint_at(q, j, pre, post, lo, hi)
+    set_row4(gq, j, tmul(g, row4(q, j)))
 
 
 @njit(cache=True)
 def place_root(parents, offsets, q, root, gq, gp, pelvis, target):
     """Drive the pelvis from its target pose: its global rotation and position become the
     target's; joints above it (a static root) keep their rotations, the root moves."""
-    fk(parents, offsets, q, root, gq, gp)
+    # only the pelvis and its ancestors (lower indices) are read before the full FK below
+    fk_upto(parents, offsets, q, root, gq, gp, pelvis)
+    tq = (target[3], target[4], target[5], target[6])
     if pelvis == 0:
-        for i in range(4):
-            q[0, i] = target[3 + i]
-        qnormalize(q[0])
+        set_row4(q, 0, tnormalize(tq))
     else:
-        tq = np.empty(4)
-        for i in range(4):
-            tq[i] = target[3 + i]
-        qmul_conj_left(gq[parents[pelvis]], tq, q[pelvis])
-        qnormalize(q[pelvis])
+        set_row4(q, pelvis, tnormalize(tmul(tconj(row4(gq, parents[pelvis])), tq)))
     # root moves by the difference between where the pelvis is and where it should be
     for i in range(3):
         root[i] += target[i] - gp[pelvis, i]

@@ -20,12 +20,14 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from solver.kernels import (
+    PARALLEL_MIN_AVATARS,
     clamp_joint,
     compose_joint,
     dls_chain,
+    dls_scratch,
     fk_joints,
     place_root,
     qaxis_angle,
@@ -336,15 +338,16 @@ def aim_clavicle(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, clav, up
 
 
 @njit(cache=True)
-def solve_analytic_batch(parents, offsets, canon, pre, post, lo, hi, dofmask, pelvis,
+def solve_analytic_range(parents, offsets, canon, pre, post, lo, hi, dofmask, pelvis,
                          chains, lengths, targets, q, root, w_rot, lam, refine, eps,
-                         iterations):
-    B = q.shape[0]
+                         iterations, first, last):
+    """Avatars first..last-1 of the batch, one after the other."""
     J = q.shape[1]
     shared = offsets.shape[0] == 1
     gq = np.empty((J, 4))
     gp = np.empty((J, 3))
-    for b in range(B):
+    scratch = dls_scratch(3 * chains.shape[1])
+    for b in range(first, last):
         off = offsets[0] if shared else offsets[b]
         qb = q[b]
         tg = targets[b]
@@ -368,5 +371,24 @@ def solve_analytic_batch(parents, offsets, canon, pre, post, lo, hi, dofmask, pe
                 eff_slot = 0 if c == 0 else c + 1
                 total += dls_chain(parents, off, qb, gq, gp, pre, post, lo, hi, dofmask,
                                    chains[c], lengths[c], tg[eff_slot], w_rot, lam,
-                                   refine, eps)
+                                   refine, eps, scratch)
         iterations[b] = total
+
+
+@njit(cache=True, parallel=True)
+def solve_analytic_batch(parents, offsets, canon, pre, post, lo, hi, dofmask, pelvis,
+                         chains, lengths, targets, q, root, w_rot, lam, refine, eps,
+                         iterations):
+    # avatars are independent: spread over the cores (see PARALLEL_MIN_AVATARS); the
+    # bounds are int64 in both calls so that they share one compiled version
+    B = q.shape[0]
+    if B < PARALLEL_MIN_AVATARS:
+        solve_analytic_range(parents, offsets, canon, pre, post, lo, hi, dofmask, pelvis,
+                             chains, lengths, targets, q, root, w_rot, lam, refine, eps,
+                             iterations, np.int64(0), B)
+    else:
+        for b in prange(B):
+            first = np.int64(b)
+            solve_analytic_range(parents, offsets, canon, pre, post, lo, hi, dofmask,
+                                 pelvis, chains, lengths, targets, q, root, w_rot, lam,
+                                 refine, eps, iterations, first, first + 1)

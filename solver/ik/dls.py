@@ -7,21 +7,22 @@ warm-started from the previous frame."""
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
-from solver.kernels import dls_chain, place_root
+from solver.kernels import PARALLEL_MIN_AVATARS, dls_chain, dls_scratch, place_root
 
 
 @njit(cache=True)
-def solve_dls_batch(parents, offsets, pre, post, lo, hi, dofmask, pelvis, chains,
-                    lengths, targets, q, root, w_rot, lam, max_iter, eps,
-                    iterations):
-    B = q.shape[0]
+def solve_dls_range(parents, offsets, pre, post, lo, hi, dofmask, pelvis, chains,
+                    lengths, targets, q, root, w_rot, lam, max_iter, eps, iterations,
+                    first, last):
+    """Avatars first..last-1 of the batch, one after the other."""
     J = q.shape[1]
     shared = offsets.shape[0] == 1
     gq = np.empty((J, 4))
     gp = np.empty((J, 3))
-    for b in range(B):
+    scratch = dls_scratch(3 * chains.shape[1])
+    for b in range(first, last):
         off = offsets[0] if shared else offsets[b]
         place_root(parents, off, q[b], root[b], gq, gp, pelvis, targets[b, 1])
         total = 0
@@ -29,5 +30,24 @@ def solve_dls_batch(parents, offsets, pre, post, lo, hi, dofmask, pelvis, chains
             eff_slot = 0 if c == 0 else c + 1
             total += dls_chain(parents, off, q[b], gq, gp, pre, post, lo, hi, dofmask,
                                chains[c], lengths[c], targets[b, eff_slot], w_rot, lam,
-                               max_iter, eps)
+                               max_iter, eps, scratch)
         iterations[b] = total
+
+
+@njit(cache=True, parallel=True)
+def solve_dls_batch(parents, offsets, pre, post, lo, hi, dofmask, pelvis, chains,
+                    lengths, targets, q, root, w_rot, lam, max_iter, eps,
+                    iterations):
+    # avatars are independent: spread over the cores (see PARALLEL_MIN_AVATARS); the
+    # bounds are int64 in both calls so that they share one compiled version
+    B = q.shape[0]
+    if B < PARALLEL_MIN_AVATARS:
+        solve_dls_range(parents, offsets, pre, post, lo, hi, dofmask, pelvis, chains,
+                        lengths, targets, q, root, w_rot, lam, max_iter, eps, iterations,
+                        np.int64(0), B)
+    else:
+        for b in prange(B):
+            first = np.int64(b)
+            solve_dls_range(parents, offsets, pre, post, lo, hi, dofmask, pelvis, chains,
+                            lengths, targets, q, root, w_rot, lam, max_iter, eps,
+                            iterations, first, first + 1)

@@ -18,17 +18,18 @@ Choices where the paper is silent, following its authors' released code:
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from solver.kernels import (
-    apply_deviation_step,
-    clamp_joint,
+    PARALLEL_MIN_AVATARS,
+    clamp_joint_at,
     effector_error,
     fk_joints,
     jacobian_column,
     place_root,
     set_effector_rotation,
     solve_spd,
+    step_joint_at,
 )
 
 
@@ -38,12 +39,9 @@ def paper_chain(parents, offsets, q, gq, gp, pre, post, lo, hi, dofmask,
     eff = chain[n - 1]
     e = np.empty(6)
     Jm = np.empty((6, 3))
-    col = np.empty(6)
     A = np.empty((3, 3))
     g = np.empty(3)
     dth = np.empty(3)
-    t4a = np.empty(4)
-    t4b = np.empty(4)
     npred = n - 1
     it = 0
     while it < max_iter:
@@ -56,9 +54,7 @@ def paper_chain(parents, offsets, q, gq, gp, pre, post, lo, hi, dofmask,
             for i in range(npred):
                 j = chain[i]
                 if dofmask[j, ax]:
-                    jacobian_column(gq, gp, post[j], j, ax, eff, 1.0, col)
-                    for r in range(6):
-                        Jm[r, i] = col[r]
+                    jacobian_column(gq, gp, post, j, ax, eff, 1.0, Jm, i)
                 else:
                     for r in range(6):
                         Jm[r, i] = 0.0
@@ -81,8 +77,8 @@ def paper_chain(parents, offsets, q, gq, gp, pre, post, lo, hi, dofmask,
                     d0 = dth[i] if ax == 0 else 0.0
                     d1 = dth[i] if ax == 1 else 0.0
                     d2 = dth[i] if ax == 2 else 0.0
-                    apply_deviation_step(q[j], pre[j], post[j], d0, d1, d2, t4a, t4b)
-                    clamp_joint(q[j], pre[j], post[j], lo[j], hi[j], t4a, t4b)
+                    step_joint_at(q, j, pre, post, d0, d1, d2)
+                    clamp_joint_at(q, j, pre, post, lo, hi)
         fk_joints(parents, offsets, q, gq, gp, chain, n - 1)
         set_effector_rotation(parents, q, gq, pre, post, lo, hi, eff, target)
         it += 1
@@ -90,15 +86,15 @@ def paper_chain(parents, offsets, q, gq, gp, pre, post, lo, hi, dofmask,
 
 
 @njit(cache=True)
-def solve_paper_batch(parents, offsets, pre, post, lo, hi, dofmask, pelvis,
-                      chains, lengths, targets, q, root, lam, max_iter, eps,
-                      iterations):
-    B = q.shape[0]
+def solve_paper_range(parents, offsets, pre, post, lo, hi, dofmask, pelvis, chains,
+                      lengths, targets, q, root, lam, max_iter, eps, iterations, first,
+                      last):
+    """Avatars first..last-1 of the batch, one after the other."""
     J = q.shape[1]
     shared = offsets.shape[0] == 1
     gq = np.empty((J, 4))
     gp = np.empty((J, 3))
-    for b in range(B):
+    for b in range(first, last):
         off = offsets[0] if shared else offsets[b]
         place_root(parents, off, q[b], root[b], gq, gp, pelvis, targets[b, 1])
         total = 0
@@ -108,3 +104,22 @@ def solve_paper_batch(parents, offsets, pre, post, lo, hi, dofmask, pelvis,
                                  chains[c], lengths[c], targets[b, eff_slot], lam,
                                  max_iter, eps)
         iterations[b] = total
+
+
+@njit(cache=True, parallel=True)
+def solve_paper_batch(parents, offsets, pre, post, lo, hi, dofmask, pelvis,
+                      chains, lengths, targets, q, root, lam, max_iter, eps,
+                      iterations):
+    # avatars are independent: spread over the cores (see PARALLEL_MIN_AVATARS); the
+    # bounds are int64 in both calls so that they share one compiled version
+    B = q.shape[0]
+    if B < PARALLEL_MIN_AVATARS:
+        solve_paper_range(parents, offsets, pre, post, lo, hi, dofmask, pelvis, chains,
+                          lengths, targets, q, root, lam, max_iter, eps, iterations,
+                          np.int64(0), B)
+    else:
+        for b in prange(B):
+            first = np.int64(b)
+            solve_paper_range(parents, offsets, pre, post, lo, hi, dofmask, pelvis, chains,
+                              lengths, targets, q, root, lam, max_iter, eps, iterations,
+                              first, first + 1)
