@@ -2,7 +2,9 @@
 one batched solve for whichever avatars have a new tracker frame.
 
 No sockets here: the room hands in device poses and gets rotations back, so this is what
-tests compare against the offline solve of the same recording.
+tests compare against the offline solve of the same recording. Every avatar's state lives
+in one slot of shared arrays, so gathering a batch and scattering its result are a few
+array operations whatever the number of avatars.
 """
 
 from __future__ import annotations
@@ -12,34 +14,17 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from solver import rotations as R
 from solver.calibration import EFFECTOR_DEVICES, Calibration, calibrate
 from solver.fk import forward_kinematics
 from solver.ik import PoseBatch, Solver
+from solver.kernels import bone_targets
 from solver.rig import EFFECTORS, Rig
+
+Array = NDArray[np.float64]
 
 
 class NotCalibratedError(ValueError):
     """A tracker frame for an avatar that has not sent its T-pose yet."""
-
-
-@dataclass
-class AvatarState:
-    calibration: Calibration
-    rotations: NDArray[np.float64]  # (J, 4) last solved local rotations (warm start)
-    root: NDArray[np.float64]  # (3,)
-    # the driving devices' mounts, in EFFECTOR_DEVICES order, for one vectorised targets call
-    mount_positions: NDArray[np.float64]  # (6, 3)
-    mount_rotations: NDArray[np.float64]  # (6, 4)
-
-
-def driving_indices(roles: tuple[str, ...]) -> list[int]:
-    """Where each driving device (EFFECTOR_DEVICES order) is in a frame's roles."""
-    try:
-        return [roles.index(d) for d in EFFECTOR_DEVICES]
-    except ValueError:
-        missing = [d for d in EFFECTOR_DEVICES if d not in roles]
-        raise ValueError(f"the frame lacks the driving devices {', '.join(missing)}") from None
 
 
 @dataclass(frozen=True)
@@ -47,24 +32,45 @@ class Solved:
     """One batch's result: per avatar, in the order asked."""
 
     avatar_ids: tuple[int, ...]
-    rotations: NDArray[np.float64]  # (B, J, 4)
-    roots: NDArray[np.float64]  # (B, 3)
+    rotations: Array  # (B, J, 4)
+    roots: Array  # (B, 3)
 
 
-def pose_dicts(roles: tuple[str, ...], positions: NDArray[np.float64],
-               rotations: NDArray[np.float64]) -> tuple[dict[str, NDArray[np.float64]],
-                                                         dict[str, NDArray[np.float64]]]:
+def pose_dicts(roles: tuple[str, ...], positions: Array,
+               rotations: Array) -> tuple[dict[str, Array], dict[str, Array]]:
     return ({r: positions[i] for i, r in enumerate(roles)},
             {r: rotations[i] for i, r in enumerate(roles)})
+
+
+_DRIVING_INDEX: dict[tuple[str, ...], list[int]] = {}
+
+
+def driving_indices(roles: tuple[str, ...]) -> list[int]:
+    """Where each driving device (EFFECTOR_DEVICES order) is in a frame's roles (cached:
+    a player sends the same roles every frame)."""
+    idx = _DRIVING_INDEX.get(roles)
+    if idx is None:
+        missing = [d for d in EFFECTOR_DEVICES if d not in roles]
+        if missing:
+            raise ValueError(f"the frame lacks the driving devices {', '.join(missing)}")
+        idx = _DRIVING_INDEX[roles] = [roles.index(d) for d in EFFECTOR_DEVICES]
+    return idx
 
 
 class AvatarSolver:
     """Calibrate avatars and solve any subset of them in one call to the solver."""
 
-    def __init__(self, rig: Rig, solver: str = "analytic") -> None:
+    def __init__(self, rig: Rig, solver: str = "analytic", capacity: int = 8) -> None:
         self.rig = rig
         self.solver = Solver(rig, solver)
-        self.avatars: dict[int, AvatarState] = {}
+        self.calibrations: dict[int, Calibration] = {}
+        self._slot: dict[int, int] = {}
+        J, E = rig.skeleton.num_joints, len(EFFECTORS)
+        self._rotations = np.empty((capacity, J, 4))  # last solved pose (warm start)
+        self._roots = np.empty((capacity, 3))
+        self._offsets = np.empty((capacity, J, 3))  # each avatar's bone lengths
+        self._mount_p = np.empty((capacity, E, 3))  # driving devices' mounts
+        self._mount_q = np.empty((capacity, E, 4))
 
     def warm_up(self) -> None:
         """Solve once now: loading the compiled solver takes ~0.2 s, not the first frame's."""
@@ -72,56 +78,61 @@ class AvatarSolver:
         gq, gp = forward_kinematics(self.rig.skeleton, state.rotations, state.root)
         eff = self.rig.effectors
         self.solver.solve(np.concatenate([gp[:, eff], gq[:, eff]], axis=-1), state)
+        bone_targets(np.zeros((1, 7)), np.zeros((1, 3)), np.tile([0.0, 0, 0, 1], (1, 1)),
+                     np.empty((1, 7)))
 
-    def calibrate(self, avatar_id: int, roles: tuple[str, ...],
-                  positions: NDArray[np.float64], rotations: NDArray[np.float64]
-                  ) -> Calibration:
+    def _new_slot(self) -> int:
+        used = set(self._slot.values())
+        free = next((s for s in range(len(self._roots)) if s not in used), None)
+        if free is None:  # grow: double every array
+            free = len(self._roots)
+            for name in ("_rotations", "_roots", "_offsets", "_mount_p", "_mount_q"):
+                a = getattr(self, name)
+                setattr(self, name, np.concatenate([a, np.empty_like(a)]))
+        return free
+
+    def calibrate(self, avatar_id: int, roles: tuple[str, ...], positions: Array,
+                  rotations: Array) -> Calibration:
         """Calibrate (or recalibrate) an avatar from a T-pose sample of its devices."""
         pos, rot = pose_dicts(roles, positions, rotations)
         cal = calibrate(self.rig, pos, rot)
+        slot = self._slot.get(avatar_id)
+        if slot is None:
+            slot = self._slot[avatar_id] = self._new_slot()
+        self.calibrations[avatar_id] = cal
+        self._rotations[slot] = cal.pose
+        self._roots[slot] = cal.root
+        self._offsets[slot] = cal.offsets
         mounts = [cal.mounts[d] for d in EFFECTOR_DEVICES]
-        self.avatars[avatar_id] = AvatarState(
-            cal, cal.pose.copy(), cal.root.copy(),
-            np.array([m.position for m in mounts]), np.array([m.rotation for m in mounts]))
+        self._mount_p[slot] = [m.position for m in mounts]
+        self._mount_q[slot] = [m.rotation for m in mounts]
         return cal
 
     def remove(self, avatar_id: int) -> None:
-        self.avatars.pop(avatar_id, None)
+        self.calibrations.pop(avatar_id, None)
+        self._slot.pop(avatar_id, None)
 
-    def solve(self, frames: list[tuple[int, tuple[str, ...], NDArray[np.float64],
-                                       NDArray[np.float64]]]) -> Solved:
+    def solve(self, frames: list[tuple[int, tuple[str, ...], Array, Array]]) -> Solved:
         """Solve the avatars of ``frames`` [(avatar id, roles, positions (D, 3), rotations
         (D, 4))] as one batch, each warm-started from its last pose."""
         B = len(frames)
-        J = self.rig.skeleton.num_joints
-        device_p = np.empty((B, len(EFFECTORS), 3))
-        device_q = np.empty((B, len(EFFECTORS), 4))
-        mount_p = np.empty((B, len(EFFECTORS), 3))
-        mount_q = np.empty((B, len(EFFECTORS), 4))
-        state = PoseBatch(np.empty((B, J, 4)), np.empty((B, 3)))
-        offsets = np.empty((B, J, 3))
+        device = np.empty((B, len(EFFECTORS), 7))
+        slots = np.empty(B, dtype=np.intp)
         for b, (avatar_id, roles, positions, rotations) in enumerate(frames):
-            avatar = self.avatars.get(avatar_id)
-            if avatar is None:
+            slot = self._slot.get(avatar_id)
+            if slot is None:
                 raise NotCalibratedError(f"avatar {avatar_id} has not been calibrated: "
-                                        "send a calibrate message (T-pose) first")
+                                         "send a calibrate message (T-pose) first")
             idx = driving_indices(roles)
-            device_p[b] = positions[idx]
-            device_q[b] = rotations[idx]
-            mount_p[b] = avatar.mount_positions
-            mount_q[b] = avatar.mount_rotations
-            state.rotations[b] = avatar.rotations
-            state.root[b] = avatar.root
-            offsets[b] = avatar.calibration.offsets
-        # bone target = device pose with the mount taken off (Calibration.targets, batched)
-        targets = np.empty((B, len(EFFECTORS), 7))
-        bone_q = R.mul(device_q, R.conjugate(mount_q))
-        targets[..., :3] = device_p - R.rotate(bone_q, mount_p)
-        targets[..., 3:] = bone_q
-        self.solver.solve(targets, state, offsets)
-        ids = tuple(f[0] for f in frames)
-        for b, avatar_id in enumerate(ids):
-            avatar = self.avatars[avatar_id]
-            avatar.rotations = state.rotations[b].copy()
-            avatar.root = state.root[b].copy()
-        return Solved(ids, state.rotations, state.root)
+            device[b, :, :3] = positions[idx]
+            device[b, :, 3:] = rotations[idx]
+            slots[b] = slot
+        targets = np.empty_like(device)
+        E = len(EFFECTORS)
+        bone_targets(device.reshape(B * E, 7), self._mount_p[slots].reshape(B * E, 3),
+                     self._mount_q[slots].reshape(B * E, 4), targets.reshape(B * E, 7))
+        state = PoseBatch(self._rotations[slots], self._roots[slots])
+        self.solver.solve(targets, state, self._offsets[slots])
+        self._rotations[slots] = state.rotations
+        self._roots[slots] = state.root
+        return Solved(tuple(f[0] for f in frames), state.rotations, state.root)

@@ -84,7 +84,7 @@ class Room:
         return cal
 
     def is_calibrated(self, avatar_id: int) -> bool:
-        return avatar_id in self.solver.avatars
+        return avatar_id in self.solver.calibrations
 
     def submit(self, avatar_id: int, frame: TrackerFrame, t_received: float) -> None:
         """Queue a player's frame (latest wins) and make sure a solve is coming."""

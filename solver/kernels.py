@@ -595,3 +595,21 @@ def place_root(parents, offsets, q, root, gq, gp, pelvis, target):
     for i in range(3):
         root[i] += target[i] - gp[pelvis, i]
     fk(parents, offsets, q, root, gq, gp)
+
+
+@njit(cache=True)
+def bone_targets(device, mount_p, mount_q, out):
+    """Bone targets from device poses: per row, bone rotation = device rotation times the
+    mount's inverse, bone position = device position minus the mount offset turned into
+    the world. device (N, 7) pos + quat, mount_p (N, 3), mount_q (N, 4), out (N, 7)."""
+    t4 = np.empty(4)
+    mc = np.empty(4)
+    v = np.empty(3)
+    for i in range(device.shape[0]):
+        qconj(mount_q[i], mc)
+        qmul(device[i, 3:], mc, t4)
+        qrotate(t4, mount_p[i], v)
+        for d in range(3):
+            out[i, d] = device[i, d] - v[d]
+        for d in range(4):
+            out[i, 3 + d] = t4[d]
