@@ -16,8 +16,9 @@ import contextlib
 import errno
 import logging
 import socket
+from collections import deque
 from types import TracebackType
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import ValidationError
 from websockets.asyncio.client import ClientConnection, connect
@@ -27,6 +28,8 @@ from websockets.exceptions import (
     InvalidStatus,
     InvalidURI,
 )
+from websockets.frames import DATA_OPCODES, Frame
+from websockets.protocol import Event
 
 from client.sources.base import now
 from protocol import (
@@ -120,6 +123,26 @@ def make_hello(url: str, role: Literal["player", "spectator"], room: str, name: 
                            ) from None
 
 
+class TimestampedConnection(ClientConnection):
+    """A client connection that notes when each message reached this process.
+
+    The stamp is taken as the event loop hands the socket's bytes to websockets, before
+    this message waits for its reader task: a demo runs many spectators in one process,
+    and one spectator's decoding must not count as another's network latency (each real
+    spectator has a machine of its own). Decoding and rendering are measured by their own
+    stages on the viewer.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.arrivals: deque[float] = deque()
+
+    def process_event(self, event: Event) -> None:
+        if isinstance(event, Frame) and event.opcode in DATA_OPCODES and event.fin:
+            self.arrivals.append(now())
+        super().process_event(event)
+
+
 async def open_session(url: str, hello: Hello, *, timeout: float = OPEN_TIMEOUT,
                        max_size: int = MAX_MESSAGE_BYTES) -> Session:
     """Connect to ``url``, send ``hello``, wait for the Welcome; raise SessionError if not."""
@@ -127,7 +150,8 @@ async def open_session(url: str, hello: Hello, *, timeout: float = OPEN_TIMEOUT,
         # compression off: poses are packed floats that deflate barely shrinks, and it
         # costs latency; no proxy: a real-time stream should not detour through one
         ws = await connect(url, compression=None, max_size=max_size, open_timeout=timeout,
-                           close_timeout=CLOSE_TIMEOUT, proxy=None)
+                           close_timeout=CLOSE_TIMEOUT, proxy=None,
+                           create_connection=TimestampedConnection)
     except (OSError, InvalidURI, InvalidHandshake, TimeoutError) as exc:
         raise SessionError(url, _connect_reason(exc)) from None
     try:
@@ -143,6 +167,8 @@ async def _handshake(url: str, ws: ClientConnection, hello: Hello, timeout: floa
         await ws.send(encode(hello))
         async with asyncio.timeout(timeout):
             data = await ws.recv()
+        if isinstance(ws, TimestampedConnection):
+            ws.arrivals.popleft()  # the welcome's: receive() pairs the rest in order
         reply = decode(data)
     except TimeoutError:
         raise SessionError(url, f"no welcome from the server within {timeout:g} s") from None
@@ -219,7 +245,9 @@ class Session:
                 why = ("the session was closed" if self._leaving
                        else _closed_reason(exc, self.last_error))
                 raise SessionError(self.url, why) from None
-            t = now()  # before decoding, so decode time counts as latency
+            # when the bytes reached this process (see TimestampedConnection)
+            arrivals = getattr(self.ws, "arrivals", None)
+            t = arrivals.popleft() if arrivals else now()
             self.bytes_received += len(data)
             msg = decode(data)
             if isinstance(msg, Pong):

@@ -38,6 +38,7 @@ class DemoResult:
     frames_solved: int
     frames_delivered: int
     frames_dropped: int
+    batches: int  # solves the server ran: frames_solved / batches = avatars per batch
     rejected: dict[str, int]
     latency: LatencyRecorder
 
@@ -46,7 +47,8 @@ class DemoResult:
                 "seconds": round(self.seconds, 3), "frames_sent": self.frames_sent,
                 "frames_solved": self.frames_solved,
                 "frames_delivered": self.frames_delivered,
-                "frames_dropped": self.frames_dropped, "rejected": self.rejected,
+                "frames_dropped": self.frames_dropped, "batches": self.batches,
+                "rejected": self.rejected,
                 "latency_ms": self.latency.summary()}
 
 
@@ -134,6 +136,7 @@ def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
         frames_solved=int(metrics.get("frames_solved", 0)),  # type: ignore[call-overload]
         frames_delivered=sum(s.frames_received for s in spectator_stats),
         frames_dropped=int(metrics.get("frames_dropped", 0)),  # type: ignore[call-overload]
+        batches=int(metrics.get("batches", 0)),  # type: ignore[call-overload]
         rejected=dict(rejected) if isinstance(rejected, dict) else {},
         latency=LatencyRecorder.merged(s.latency for s in spectator_stats))
 

@@ -16,6 +16,7 @@ import logging
 import signal
 from collections.abc import Callable
 
+import numba
 from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 
@@ -65,6 +66,10 @@ class Session:
         self._owners: dict[int, ServerConnection] = {}  # avatar id -> its live connection
         # before serving: a first join must not wait for the compiled solver to load
         AvatarSolver(self.rig, solver).warm_up()
+        # solve on the event loop's own thread: a batch of a room is tens of avatars, and
+        # waking a worker thread costs ~1 ms in a VM, more than it saves; scale out over
+        # cores with processes instead
+        numba.set_num_threads(1)
 
     def room(self, name: str) -> Room:
         if name not in self.rooms:  # rooms are created on first join
