@@ -73,6 +73,8 @@ def _parser() -> argparse.ArgumentParser:
     bs.add_argument("--max-iterations", type=int, default=None)
     bs.add_argument("--seconds", type=float, default=2.0, help="time spent per batch size")
     bs.add_argument("--json", action="store_true")
+    bp = bsub.add_parser("protocol", help="wire sizes, quantization error, codec timings")
+    bp.add_argument("--json", action="store_true")
     bv = bsub.add_parser("server", help="players and spectators one server sustains")
     bv.add_argument("--counts", type=_positive_ints, default=[4, 8, 16, 24, 32, 48, 64],
                     help="players (= spectators) to try, in order")
@@ -100,6 +102,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         result = bench_solver(args.solver, args.avatars,
                               SolverOptions(max_iterations=args.max_iterations), args.seconds)
         print(json.dumps(result) if args.json else format_solver_table(result))
+        return 0
+    if args.command == "bench" and args.bench == "protocol":
+        from client.bench_protocol import bench_protocol, format_protocol_table
+
+        doc = bench_protocol()
+        print(json.dumps(doc) if args.json else format_protocol_table(doc))
         return 0
     if args.command == "bench" and args.bench == "server":
         from client.bench_server import bench_server, format_server_table

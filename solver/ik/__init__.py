@@ -35,6 +35,8 @@ from solver.rig import Rig
 os.environ.setdefault("GOMP_SPINCOUNT", "1000")
 
 SOLVERS = ("analytic", "dls", "paper")
+# paper: metres (and radians) of error one iteration may act on; see solver/ik/paper.py
+STEP_LIMIT = 0.005
 DEFAULT_SOLVER = "analytic"
 
 
@@ -44,13 +46,16 @@ class SolverOptions:
     epsilon: float = 1e-4  # stop when the error norm (m and weighted rad) is below this
     damping: float | None = None  # lambda; None: the solver's tuned default
     rotation_weight: float = 0.3  # metres per radian when errors are compared
+    # paper only: the error each iteration may act on, clamped to this norm (m, rad); the
+    # authors' released code clamps it (dMax, after Buss); None: the solver's default
+    step_limit: float | None = None
 
 
 DEFAULTS: dict[str, dict[str, float]] = {
     # tuned on the Vive recordings: see README, "Solvers"
     "analytic": {"max_iterations": 4, "damping": 0.02},
     "dls": {"max_iterations": 20, "damping": 0.05},
-    "paper": {"max_iterations": 100, "damping": 1e-3},
+    "paper": {"max_iterations": 100, "damping": 1e-3, "step_limit": STEP_LIMIT},
 }
 
 
@@ -90,6 +95,8 @@ class Solver:
                                   else d["max_iterations"])
         self.damping = float(self.options.damping if self.options.damping is not None
                              else d["damping"])
+        self.step_limit = float(self.options.step_limit if self.options.step_limit is not None
+                                else d.get("step_limit", 0.0))
         self.arrays: ChainArrays = chain_arrays(rig)
 
     def solve(self, targets: NDArray[np.float64], state: PoseBatch,
@@ -115,4 +122,5 @@ class Solver:
             solve_paper_batch(a.parents, offsets, a.pre, a.post, a.lo, a.hi, a.dofmask,
                               a.pelvis, a.paper_chains, a.paper_lengths, targets,
                               state.rotations, state.root, self.damping,
-                              self.max_iterations, o.epsilon, state.iterations)
+                              self.max_iterations, o.epsilon, self.step_limit,
+                              state.iterations)
