@@ -9,9 +9,12 @@ only ``ProtocolError``, whatever the bytes.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import msgpack
+import numpy as np
+from numpy.typing import NDArray
 from pydantic import BaseModel, ValidationError
 
 from protocol.errors import ErrorCode, ProtocolError
@@ -21,6 +24,7 @@ from protocol.messages import (
     ClientMessage,
     Message,
 )
+from protocol.quantize import BYTES_PER_ROTATION, quantize_rotations
 from protocol.validation import MAX_CLIENT_MESSAGE_BYTES, MAX_MESSAGE_BYTES, protocol_error
 
 _WIRE = {"wire": True}  # validation context: arrays must arrive as bytes
@@ -78,3 +82,32 @@ def _decode(data: Any, max_bytes: int, allowed: frozenset[str] | None) -> BaseMo
 def _short(value: object) -> str:
     text = repr(value)
     return text if len(text) <= 60 else text[:60] + "..."
+
+
+def encode_avatar_batch(avatar_ids: Sequence[int], seqs: Sequence[int], roots: NDArray[Any],
+                        rotations: NDArray[Any], t_capture: Sequence[float],
+                        t_server_receive: Sequence[float], t_solved: float,
+                        t_sent: float) -> bytes:
+    """An AvatarBatch's bytes straight from the solver's arrays (B, 3) and (B, J, 4).
+
+    The server's hot path: the same bytes as ``encode(AvatarBatch.from_arrays(...))``
+    (a test holds them equal) at half the cost, without building B pydantic models. The
+    arrays come from the solver, not from outside: only shapes and finiteness are checked.
+    """
+    roots = np.asarray(roots, dtype=np.float64)
+    rotations = np.asarray(rotations, dtype=np.float64)
+    B = len(avatar_ids)
+    if roots.shape != (B, 3) or rotations.ndim != 3 or rotations.shape[0] != B \
+            or rotations.shape[2] != 4:
+        raise ValueError(f"encode_avatar_batch: {B} avatars, roots {roots.shape}, "
+                         f"rotations {rotations.shape}")
+    if not (np.isfinite(roots).all() and np.isfinite(rotations).all()):
+        raise ValueError("encode_avatar_batch: roots and rotations must be finite")
+    per = BYTES_PER_ROTATION * rotations.shape[1]
+    packed = quantize_rotations(rotations.reshape(-1, 4))
+    root_rows = roots.astype("<f4")
+    frames = [[int(avatar_ids[b]), int(seqs[b]), root_rows[b].tobytes(),
+               packed[b * per:(b + 1) * per], float(t_capture[b]),
+               float(t_server_receive[b]), float(t_solved), float(t_sent)]
+              for b in range(B)]
+    return msgpack.packb({"type": "avatar_batch", "frames": frames}, use_bin_type=True)

@@ -176,7 +176,7 @@ class Session:
             self.metrics.frames_delivered += len(deliveries)
 
         outbox: Outbox[Delivery] = Outbox(send, hello.max_rate_hz)
-        spectator = Spectator(outbox, send_bytes)
+        spectator = Spectator(outbox, send_bytes, connection=ws)
         await ws.send(encode(Welcome(protocol_version=PROTOCOL_VERSION, connection_id=conn_id,
                                      avatar_id=None, server_time=now())))
         await ws.send(encode(room.roster()))

@@ -24,6 +24,8 @@ class Outbox(Generic[Frame]):
         self._pending: dict[int, Frame] = {}
         self._wake = asyncio.Event()
         self._closed = False
+        self._sending = False
+        self._last = -1e9  # loop time of the last send
         self.delivered = 0  # frames handed to the socket
         self.dropped = 0  # frames replaced by a newer one of the same avatar before sending
 
@@ -36,6 +38,16 @@ class Outbox(Generic[Frame]):
                 self.dropped += 1
             self._pending[avatar_id] = frame
         self._wake.set()
+
+    def ready(self, t: float) -> bool:
+        """Whether a send now would jump no queue and break no rate limit: then the room
+        may write straight to the socket (``sent_directly``) instead of waking the task."""
+        return (not self._sending and not self._pending and not self._closed
+                and t - self._last >= self._min_interval)
+
+    def sent_directly(self, frames: int, t: float) -> None:
+        self.delivered += frames
+        self._last = t
 
     def forget(self, avatar_id: int) -> None:
         """An avatar left: do not send its last frame after its removal notice."""
@@ -52,12 +64,11 @@ class Outbox(Generic[Frame]):
     async def run(self) -> None:
         """Send pending frames until closed (run as the connection's sender task)."""
         loop = asyncio.get_running_loop()
-        last = -1e9
         while True:
             await self._wake.wait()
             if self._closed:
                 return
-            wait = last + self._min_interval - loop.time()
+            wait = self._last + self._min_interval - loop.time()
             if wait > 0:  # a spectator that asked for a lower rate
                 await asyncio.sleep(wait)
                 if self._closed:
@@ -67,6 +78,10 @@ class Outbox(Generic[Frame]):
             self._pending.clear()
             if not frames:
                 continue
-            last = loop.time()
-            await self._send(frames)
+            self._last = loop.time()
+            self._sending = True
+            try:
+                await self._send(frames)
+            finally:
+                self._sending = False
             self.delivered += len(frames)

@@ -17,8 +17,10 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+from websockets.asyncio.server import ServerConnection, broadcast
 
 from protocol import AvatarBatch, AvatarFrame, AvatarInfo, AvatarRoster, TrackerFrame, encode
+from protocol.codec import encode_avatar_batch
 from server.avatars import AvatarSolver
 from server.clock import now
 from server.metrics import Metrics
@@ -27,19 +29,30 @@ from solver.calibration import Calibration
 
 
 class SharedBatch:
-    """One solved batch, encoded at most once however many spectators receive it whole."""
+    """One solved batch, encoded at most once however many spectators receive it whole;
+    its pydantic form is built only for a spectator that needs part of it."""
 
-    def __init__(self, batch: AvatarBatch) -> None:
-        self.batch = batch
+    def __init__(self, avatar_ids: list[int], seqs: list[int], roots: np.ndarray,
+                 rotations: np.ndarray, t_capture: list[float],
+                 t_server_receive: list[float], t_solved: float) -> None:
+        self.args = (avatar_ids, seqs, roots, rotations, t_capture, t_server_receive,
+                     t_solved)
+        self.size = len(avatar_ids)
         self._encoded: bytes | None = None
+        self._batch: AvatarBatch | None = None
 
     def encoded(self) -> bytes:
-        if self._encoded is None:
-            self._encoded = encode(self.batch.stamped(now()))
+        if self._encoded is None:  # t_sent: now, as the bytes go to the sockets
+            self._encoded = encode_avatar_batch(*self.args, t_sent=now())
         return self._encoded
 
+    def frame(self, index: int) -> AvatarFrame:
+        if self._batch is None:
+            self._batch = AvatarBatch.from_arrays(*self.args, t_sent=self.args[-1])
+        return self._batch.frames[index]
 
-Delivery = tuple[SharedBatch, AvatarFrame]
+
+Delivery = tuple[SharedBatch, int]  # a batch and the index of one avatar in it
 
 # the longest a burst may keep a batch open; 16 players' frames reach the server within
 # ~0.6 ms of each other on loopback, and one batch of 16 costs a quarter of four batches
@@ -56,11 +69,23 @@ class Avatar:
     connected: bool = True
 
 
-@dataclass
+# a spectator whose socket holds more unsent bytes than this is slow: its frames go
+# through its outbox (latest wins) instead of piling up in the kernel and the transport
+DIRECT_WRITE_LIMIT = 64 * 1024
+
+
+@dataclass(eq=False)
 class Spectator:
     outbox: Outbox[Delivery]
     send_bytes: Callable[[bytes], Awaitable[None]]
     task: asyncio.Task[None] | None = None
+    # the socket, for writing a batch straight from the solve (see Room.deliver)
+    connection: ServerConnection | None = None
+
+    def writable(self) -> bool:
+        c = self.connection
+        return (c is not None and c.transport is not None
+                and c.transport.get_write_buffer_size() < DIRECT_WRITE_LIMIT)
 
 
 @dataclass
@@ -132,16 +157,32 @@ class Room:
         solved = self.solver.solve([(a, f.roles, f.positions, f.rotations)
                                     for a, f, _ in pending])
         t_solved = now()
-        batch = AvatarBatch.from_arrays(
-            [a for a, _, _ in pending], [f.seq for _, f, _ in pending], solved.roots,
-            solved.rotations, [f.t_capture_server for _, f, _ in pending],
-            [t for _, _, t in pending], t_solved, t_solved)
+        shared = SharedBatch([a for a, _, _ in pending], [f.seq for _, f, _ in pending],
+                             solved.roots, solved.rotations,
+                             [f.t_capture_server for _, f, _ in pending],
+                             [t for _, _, t in pending], t_solved)
         self.metrics.frames_solved += len(pending)
         self.metrics.batches += 1
-        shared = SharedBatch(batch)
-        deliveries = {f.avatar_id: (shared, f) for f in batch.frames}
-        for s in self.spectators.values():
-            s.outbox.offer(deliveries)
+        self.deliver(shared)
+
+    def deliver(self, shared: SharedBatch) -> None:
+        """Every spectator gets the batch: written to the socket at once when it is idle
+        and keeping up (one encoding, no task switch), else through its outbox."""
+        t = asyncio.get_running_loop().time()
+        direct = [s for s in self.spectators.values() if s.outbox.ready(t) and s.writable()]
+        if direct:
+            broadcast([s.connection for s in direct if s.connection is not None],
+                      shared.encoded())
+            n = shared.size
+            for s in direct:
+                s.outbox.sent_directly(n, t)
+            self.metrics.frames_delivered += n * len(direct)
+        if len(direct) < len(self.spectators):
+            deliveries = {a: (shared, i) for i, a in enumerate(shared.args[0])}
+            chosen = {id(s) for s in direct}
+            for s in self.spectators.values():
+                if id(s) not in chosen:
+                    s.outbox.offer(deliveries)
 
     # ------------------------------------------------------------------ spectators
     def roster(self) -> AvatarRoster:
@@ -163,10 +204,10 @@ async def send_deliveries(send_bytes: Callable[[bytes], Awaitable[None]],
     """What a spectator's outbox sends: the shared encoding when it is one whole batch,
     else the frames it has (the newest of each avatar) as a batch of their own."""
     first = deliveries[0][0]
-    if all(d[0] is first for d in deliveries) and len(deliveries) == len(first.batch.frames):
+    if all(d[0] is first for d in deliveries) and len(deliveries) == first.size:
         await send_bytes(first.encoded())
         return
-    batch = AvatarBatch(frames=tuple(f for _, f in deliveries)).stamped(now())
+    batch = AvatarBatch(frames=tuple(b.frame(i) for b, i in deliveries)).stamped(now())
     await send_bytes(encode(batch))
 
 

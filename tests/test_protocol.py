@@ -522,3 +522,18 @@ def test_corrupted_messages_raise_only_protocol_errors(good: bytes, data: st.Dat
         decode(bytes(raw))
     except ProtocolError as err:
         assert err.message
+
+
+def test_direct_batch_encoder_gives_the_model_bytes() -> None:
+    from protocol.codec import encode_avatar_batch
+    rng = np.random.default_rng(3)
+    q = rng.normal(size=(5, 53, 4))
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    args = ([1, 2, 3, 4, 5], [9, 8, 7, 6, 5], rng.uniform(-2, 2, (5, 3)), q,
+            [0.1] * 5, [0.2] * 5, 0.3, 0.4)
+    assert encode_avatar_batch(*args) == encode(AvatarBatch.from_arrays(*args))
+    with pytest.raises(ValueError, match="finite"):
+        bad = q.copy()
+        bad[2, 7, 1] = np.nan
+        encode_avatar_batch(*args[:3], bad, *args[4:])
+

@@ -297,10 +297,17 @@ def test_spectator_rate_limit() -> None:
     assert 8 <= sends <= 13  # ~0.55 s at 20 Hz, not 50
 
 
-def test_shared_batch_is_encoded_once(session: Session, tmp_path: Path) -> None:
+def test_shared_batch_is_encoded_once_and_parts_match_it() -> None:
     from server.room import SharedBatch
-    batch = AvatarBatch.from_arrays([1], [1], np.zeros((1, 3)),
-                                    np.tile([0.0, 0.0, 0.0, 1.0], (1, 3, 1)), [0.0], [0.0],
-                                    0.0, 0.0)
-    shared = SharedBatch(batch)
-    assert shared.encoded() is shared.encoded()
+    rotations = np.tile([0.0, 0.0, 0.0, 1.0], (2, 3, 1))
+    shared = SharedBatch([7, 9], [1, 2], np.zeros((2, 3)), rotations, [0.5, 0.6],
+                         [1.0, 1.1], 1.2)
+    data = shared.encoded()
+    assert data is shared.encoded()
+    whole = decode(data)
+    assert isinstance(whole, AvatarBatch)
+    assert [f.avatar_id for f in whole.frames] == [7, 9]
+    # a spectator that gets part of the batch gets the same frame, t_sent aside
+    part = shared.frame(1)
+    assert part.avatar_id == 9 and part.seq == 2 and part.t_capture == 0.6
+    np.testing.assert_array_equal(part.rotations, whole.frames[1].rotations)
