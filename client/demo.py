@@ -100,39 +100,69 @@ class EmbeddedServer:
             self._process.kill()
 
 
+async def run_players(url: str, players: int, seconds: float,
+                      motion: Path) -> list[PlayerStats]:
+    """N players replaying the motion, all on one schedule (headsets tick together)."""
+    sources = [BvhSource(motion, loop=True, rate_hz=HEADSET_HZ) for _ in range(players)]
+    ticker = Ticker(sources[0].rate_hz) if sources else None
+    try:
+        return list(await asyncio.gather(*(
+            run_player(url, ROOM, f"player {i + 1}", source, seconds=seconds, ticker=ticker)
+            for i, source in enumerate(sources))))
+    finally:
+        for source in sources:
+            source.close()
+
+
+def _players_process(pipe: Connection, url: str, players: int, seconds: float,
+                     motion: Path) -> None:
+    pipe.recv()  # go: the spectators are in the room
+    stats = _run(run_players(url, players, seconds, motion))
+    pipe.send([(p.frames_sent, dict(p.errors)) for p in stats])
+
+
 async def run_clients(url: str, players: int, spectators: int, seconds: float,
-                      motion: Path) -> tuple[list[PlayerStats], list[SpectatorStats]]:
+                      motion: Path) -> tuple[int, list[SpectatorStats]]:
+    """Spectators here, players in a process of their own: a player's capture must not
+    wait behind spectators decoding (on separate machines it would not). Returns the
+    frames the players sent and the spectators' stats."""
     stop_spectators = asyncio.Event()
     spectator_tasks = [asyncio.create_task(run_spectator(url, ROOM, f"spectator {i + 1}",
                                                          stop=stop_spectators))
                        for i in range(spectators)]
-    await asyncio.sleep(0.5)  # every spectator in the room before the first frame
-    sources = [BvhSource(motion, loop=True, rate_hz=HEADSET_HZ) for _ in range(players)]
-    ticker = Ticker(sources[0].rate_hz) if sources else None
+    ctx = mp.get_context("spawn")
+    pipe, child = ctx.Pipe()
+    process = ctx.Process(target=_players_process, args=(child, url, players, seconds,
+                                                         motion), daemon=True)
+    process.start()
+    await asyncio.sleep(1.0)  # every spectator in the room (and the players' imports done)
+    pipe.send("go")
+    loop = asyncio.get_running_loop()
+    ready = asyncio.Event()
+    loop.add_reader(pipe.fileno(), ready.set)
     try:
-        player_stats = await asyncio.gather(*(
-            run_player(url, ROOM, f"player {i + 1}", source, seconds=seconds, ticker=ticker)
-            for i, source in enumerate(sources)))
+        await asyncio.wait_for(ready.wait(), seconds + 60)
     finally:
-        for source in sources:
-            source.close()
+        loop.remove_reader(pipe.fileno())
+    player_stats = pipe.recv()
+    process.join(10)
     await asyncio.sleep(DRAIN_SECONDS)
     stop_spectators.set()
     spectator_stats = await asyncio.gather(*spectator_tasks)
-    return list(player_stats), list(spectator_stats)
+    return sum(sent for sent, _ in player_stats), list(spectator_stats)
 
 
 def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
              motion: Path | None = None, solver: str = "analytic") -> DemoResult:
     motion = motion or builtin_motion_path()
     with EmbeddedServer(solver) as server:
-        player_stats, spectator_stats = _run(run_clients(server.url, players, spectators,
-                                                         seconds, motion))
+        frames_sent, spectator_stats = _run(run_clients(server.url, players, spectators,
+                                                        seconds, motion))
     metrics = server.metrics
     rejected = metrics.get("rejected", {})
     return DemoResult(
         players=players, spectators=spectators, seconds=seconds,
-        frames_sent=sum(p.frames_sent for p in player_stats),
+        frames_sent=frames_sent,
         frames_solved=int(metrics.get("frames_solved", 0)),  # type: ignore[call-overload]
         frames_delivered=sum(s.frames_received for s in spectator_stats),
         frames_dropped=int(metrics.get("frames_dropped", 0)),  # type: ignore[call-overload]
