@@ -16,7 +16,7 @@ $(STAMP): pyproject.toml deploy/bootstrap.sh
 setup: $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/posecast eval
+	$(VENV)/bin/posecast demo
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
