@@ -311,3 +311,43 @@ def test_shared_batch_is_encoded_once_and_parts_match_it() -> None:
     part = shared.frame(1)
     assert part.avatar_id == 9 and part.seq == 2 and part.t_capture == 0.6
     np.testing.assert_array_equal(part.rotations, whole.frames[1].rotations)
+
+
+def test_serve_shuts_down_cleanly_on_sigterm(tmp_path: Path) -> None:
+    import json
+    import signal
+    import socket
+    import subprocess
+    import sys
+    import time
+
+    with socket.socket() as s:  # a free port
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    proc = subprocess.Popen([sys.executable, "-m", "client.cli", "serve", "--port",
+                             str(port)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:  # until it listens
+            with socket.socket() as s:
+                if s.connect_ex(("127.0.0.1", port)) == 0:
+                    break
+            time.sleep(0.1)
+        else:
+            pytest.fail("posecast serve did not start listening")
+
+        async def spectate() -> None:
+            async with joined(f"ws://127.0.0.1:{port}", "spectator", "sig") as (ws, _):
+                await receive(ws)
+                proc.send_signal(signal.SIGTERM)
+                # the server closes our connection as it goes
+                await asyncio.wait_for(ws.wait_closed(), TIMEOUT)
+
+        asyncio.run(spectate())
+        out, err = proc.communicate(timeout=30)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, err
+    counters = json.loads(out.strip().splitlines()[-1])
+    assert counters["connections"] == 1 and counters["rejected"] == {}
