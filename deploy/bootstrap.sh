@@ -12,3 +12,22 @@ else
     $SUDO apt-get install -y -qq python3-venv python3-pip
 fi
 [ -x .venv/bin/python ] || python3 -m venv .venv
+# Headless OpenGL for the viewer: moderngl renders through EGL, with Mesa's software
+# rasterizer (llvmpipe) where there is no GPU. Install what is missing (Debian/Ubuntu).
+GL_MISSING=""
+for pkg in libegl1 libgl1 libgl1-mesa-dri; do
+    dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "ok installed" \
+        || GL_MISSING="$GL_MISSING $pkg"
+done
+if [ -n "$GL_MISSING" ]; then
+    if command -v apt-get >/dev/null 2>&1; then
+        SUDO=""
+        [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+        echo "installing$GL_MISSING (headless OpenGL for the viewer)"
+        $SUDO apt-get update -qq
+        $SUDO apt-get install -y -qq $GL_MISSING
+    else
+        echo "warning: the viewer needs EGL, OpenGL and Mesa's drivers (on Debian/Ubuntu:" \
+             "libegl1 libgl1 libgl1-mesa-dri); headless rendering will fail without them"
+    fi
+fi
