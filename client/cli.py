@@ -58,7 +58,26 @@ def _parser() -> argparse.ArgumentParser:
     pl.add_argument("--loop", action="store_true", help="replay a recording forever")
     pl.add_argument("--seconds", type=float, default=None)
 
+    vw = sub.add_parser("view", help="watch a room: skinned avatars in a window, or to PNGs")
+    vw.add_argument("--server", required=True, help="ws://host:port")
+    vw.add_argument("--room", required=True)
+    vw.add_argument("--headless", action="store_true",
+                    help="no window: render through EGL to PNG files in --out")
+    vw.add_argument("--frames", type=int, default=None,
+                    help="stop after this many frames (headless default: 100)")
+    vw.add_argument("--out", type=Path, default=Path("frames"), help="PNG folder (headless)")
+    vw.add_argument("--size", default="1280x720", help="WIDTHxHEIGHT")
+    vw.add_argument("--fps", type=float, default=30.0)
+    vw.add_argument("--mode", choices=("interpolate", "zero-buffer"), default="interpolate",
+                    help="interpolate: render slightly behind, SLERP between frames; "
+                         "zero-buffer: the newest frame, least latency")
+    vw.add_argument("--view", choices=("orbit", "first-person", "mirror"), default="orbit")
+    vw.add_argument("--max-rate", type=float, default=None,
+                    help="ask the server for at most this many batches per second")
+
     dm = sub.add_parser("demo", help="a whole session on this machine, with latency table")
+    dm.add_argument("--render", type=Path, default=None,
+                    help="also run a headless viewer writing PNG frames to this folder")
     dm.add_argument("--players", type=int, default=4)
     dm.add_argument("--spectators", type=int, default=2)
     dm.add_argument("--seconds", type=float, default=10.0)
@@ -75,6 +94,12 @@ def _parser() -> argparse.ArgumentParser:
     bs.add_argument("--json", action="store_true")
     bp = bsub.add_parser("protocol", help="wire sizes, quantization error, codec timings")
     bp.add_argument("--json", action="store_true")
+    br = bsub.add_parser("render", help="ms per frame of the viewer (software GL here)")
+    br.add_argument("--avatars", type=int, default=16)
+    br.add_argument("--size", default="1280x720", help="WIDTHxHEIGHT")
+    br.add_argument("--frames", type=int, default=120)
+    br.add_argument("--out", type=Path, default=None, help="save the last frame as PNG")
+    br.add_argument("--json", action="store_true")
     bv = bsub.add_parser("server", help="players and spectators one server sustains")
     bv.add_argument("--counts", type=_positive_ints, default=[4, 8, 16, 24, 32, 48, 64],
                     help="players (= spectators) to try, in order")
@@ -96,6 +121,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _play(args)
     if args.command == "demo":
         return _demo(args)
+    if args.command == "view":
+        return _view(args)
     if args.command == "bench" and args.bench == "solver":
         from client.bench import bench_solver, format_solver_table
 
@@ -109,6 +136,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         doc = bench_protocol()
         print(json.dumps(doc) if args.json else format_protocol_table(doc))
         return 0
+    if args.command == "bench" and args.bench == "render":
+        from client.viewer.bench import bench_render, format_render_table
+
+        width, height = _size(args.size)
+        result = bench_render(args.avatars, width, height, args.frames, out=args.out)
+        print(json.dumps(result) if args.json else format_render_table(result))
+        return 0
     if args.command == "bench" and args.bench == "server":
         from client.bench_server import bench_server, format_server_table
 
@@ -116,6 +150,51 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(json.dumps(result) if args.json else format_server_table(result))
         return 0
     return 2
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise SystemExit(f"posecast: --size expects WIDTHxHEIGHT, got {text!r}") from None
+    if not (16 <= w <= 8192 and 16 <= h <= 8192):
+        raise SystemExit(f"posecast: --size {text!r} is out of range (16..8192)")
+    return w, h
+
+
+def _view(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from client.connection import SessionError
+    from client.viewer import (
+        GLUnavailableError,
+        Mode,
+        NoDisplayError,
+        ViewerStats,
+        ViewMode,
+        run_headless_viewer,
+        run_window_viewer,
+    )
+
+    width, height = _size(args.size)
+    mode, view = Mode(args.mode), ViewMode(args.view)
+    stats: ViewerStats
+    try:
+        if args.headless:
+            stats = asyncio.run(run_headless_viewer(
+                args.server, args.room, args.frames or 100, args.out, width, height,
+                interval_ms=1000.0 / args.fps, mode=mode, view=view,
+                max_rate_hz=args.max_rate))
+        else:
+            stats = asyncio.run(run_window_viewer(
+                args.server, args.room, width, height, fps=args.fps, mode=mode, view=view,
+                max_rate_hz=args.max_rate, frames=args.frames))
+    except (NoDisplayError, GLUnavailableError, SessionError) as err:
+        return _fail("view", err)
+    except KeyboardInterrupt:
+        return 130
+    print(json.dumps(stats.as_json()))
+    return 0
 
 
 def _fail(command: str, message: object) -> int:
@@ -173,7 +252,8 @@ def _demo(args: argparse.Namespace) -> int:
 
     if args.players < 0 or args.spectators < 0 or args.seconds <= 0:
         return _fail("demo", "players and spectators must be >= 0 and seconds > 0")
-    result = run_demo(args.players, args.spectators, args.seconds, solver=args.solver)
+    result = run_demo(args.players, args.spectators, args.seconds, solver=args.solver,
+                      render=args.render)
     if args.json:
         print(json.dumps(result.as_json()))
     else:

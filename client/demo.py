@@ -22,6 +22,7 @@ from client.latency import LatencyRecorder
 from client.player import PlayerStats, Ticker, run_player
 from client.sources.bvh_source import BvhSource
 from client.spectator import SpectatorStats, run_spectator
+from client.viewer.headless import HeadlessViewerProcess
 
 ROOM = "demo"
 T = TypeVar("T")
@@ -41,6 +42,7 @@ class DemoResult:
     batches: int  # solves the server ran: frames_solved / batches = avatars per batch
     rejected: dict[str, int]
     latency: LatencyRecorder
+    rendered: int = 0  # PNG frames the viewer wrote (with --render)
 
     def as_json(self) -> dict[str, object]:
         return {"players": self.players, "spectators": self.spectators,
@@ -48,7 +50,7 @@ class DemoResult:
                 "frames_solved": self.frames_solved,
                 "frames_delivered": self.frames_delivered,
                 "frames_dropped": self.frames_dropped, "batches": self.batches,
-                "rejected": self.rejected,
+                "rejected": self.rejected, "frames_rendered": self.rendered,
                 "latency_ms": self.latency.summary()}
 
 
@@ -100,10 +102,16 @@ class EmbeddedServer:
             self._process.kill()
 
 
+def _spot(i: int, per_row: int = 4, spacing: float = 1.5) -> tuple[float, float]:
+    """Where player i stands (x, z metres): a grid, so that avatars do not overlap."""
+    return ((i % per_row - (per_row - 1) / 2) * spacing, (i // per_row) * spacing)
+
+
 async def run_players(url: str, players: int, seconds: float,
                       motion: Path) -> list[PlayerStats]:
     """N players replaying the motion, all on one schedule (headsets tick together)."""
-    sources = [BvhSource(motion, loop=True, rate_hz=HEADSET_HZ) for _ in range(players)]
+    sources = [BvhSource(motion, loop=True, rate_hz=HEADSET_HZ, offset=_spot(i),
+                         start_frame=37 * i) for i in range(players)]
     ticker = Ticker(sources[0].rate_hz) if sources else None
     try:
         return list(await asyncio.gather(*(
@@ -122,7 +130,8 @@ def _players_process(pipe: Connection, url: str, players: int, seconds: float,
 
 
 async def run_clients(url: str, players: int, spectators: int, seconds: float,
-                      motion: Path) -> tuple[int, list[SpectatorStats]]:
+                      motion: Path, render: Path | None = None
+                      ) -> tuple[int, list[SpectatorStats], dict[str, Any]]:
     """Spectators here, players in a process of their own: a player's capture must not
     wait behind spectators decoding (on separate machines it would not). Returns the
     frames the players sent and the spectators' stats."""
@@ -135,29 +144,43 @@ async def run_clients(url: str, players: int, spectators: int, seconds: float,
     process = ctx.Process(target=_players_process, args=(child, url, players, seconds,
                                                          motion), daemon=True)
     process.start()
-    await asyncio.sleep(1.0)  # every spectator in the room (and the players' imports done)
-    pipe.send("go")
-    loop = asyncio.get_running_loop()
-    ready = asyncio.Event()
-    loop.add_reader(pipe.fileno(), ready.set)
+    viewer = HeadlessViewerProcess(url, ROOM, render) if render is not None else None
+    if viewer is not None:  # a viewer of its own process: drawing holds the GIL
+        await viewer.__aenter__()
     try:
-        await asyncio.wait_for(ready.wait(), seconds + 60)
+        await asyncio.sleep(1.0)  # every spectator in the room, the players' imports done
+        pipe.send("go")
+        loop = asyncio.get_running_loop()
+        ready = asyncio.Event()
+        loop.add_reader(pipe.fileno(), ready.set)
+        try:
+            await asyncio.wait_for(ready.wait(), seconds + 60)
+        finally:
+            loop.remove_reader(pipe.fileno())
+        player_stats = pipe.recv()
+        process.join(10)
+        await asyncio.sleep(DRAIN_SECONDS)
     finally:
-        loop.remove_reader(pipe.fileno())
-    player_stats = pipe.recv()
-    process.join(10)
-    await asyncio.sleep(DRAIN_SECONDS)
+        if viewer is not None:
+            await viewer.__aexit__(None, None, None)
     stop_spectators.set()
     spectator_stats = await asyncio.gather(*spectator_tasks)
-    return sum(sent for sent, _ in player_stats), list(spectator_stats)
+    return (sum(sent for sent, _ in player_stats), list(spectator_stats),
+            viewer.result if viewer is not None else {})
 
 
 def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
-             motion: Path | None = None, solver: str = "analytic") -> DemoResult:
+             motion: Path | None = None, solver: str = "analytic",
+             render: Path | None = None) -> DemoResult:
+    """The session; with ``render``, a headless viewer also draws the room to PNG files
+    there and its ``capture_to_render`` joins the latency stages."""
     motion = motion or builtin_motion_path()
     with EmbeddedServer(solver) as server:
-        frames_sent, spectator_stats = _run(run_clients(server.url, players, spectators,
-                                                        seconds, motion))
+        frames_sent, spectator_stats, viewed = _run(run_clients(
+            server.url, players, spectators, seconds, motion, render))
+    latency = LatencyRecorder.merged(s.latency for s in spectator_stats)
+    for stage, samples in viewed.get("samples", {}).items():
+        latency.add_values(stage, samples)
     metrics = server.metrics
     rejected = metrics.get("rejected", {})
     return DemoResult(
@@ -168,7 +191,7 @@ def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
         frames_dropped=int(metrics.get("frames_dropped", 0)),  # type: ignore[call-overload]
         batches=int(metrics.get("batches", 0)),  # type: ignore[call-overload]
         rejected=dict(rejected) if isinstance(rejected, dict) else {},
-        latency=LatencyRecorder.merged(s.latency for s in spectator_stats))
+        latency=latency, rendered=len(viewed.get("files", [])))
 
 
 def _run(coro: Coroutine[Any, Any, T]) -> T:

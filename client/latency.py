@@ -19,7 +19,8 @@ from numpy.typing import ArrayLike, NDArray
 
 # the order stages are listed in: along the way a pose travels
 STAGE_ORDER = ("capture_to_server", "solve", "server", "network_to_spectator",
-               "capture_to_spectator", "receive_to_presented", "capture_to_presented")
+               "capture_to_spectator", "receive_to_render", "capture_to_render",
+               "receive_to_presented", "capture_to_presented")
 PERCENTILES = (("p50", 50.0), ("p95", 95.0), ("p99", 99.0))
 
 Summary = dict[str, dict[str, float]]

@@ -25,3 +25,24 @@ def test_demo_delivers_every_solved_frame_to_every_spectator(
         assert 0.0 < p["p50"] <= p["p95"] <= p["p99"], stage
     # each stage is part of the whole: receive-to-sent is inside capture-to-spectator
     assert stages["server"]["p50"] < stages["capture_to_spectator"]["p50"]
+
+
+def test_demo_renders_moving_avatars(tmp_path, capsys: pytest.CaptureFixture[str]) -> None:
+    import numpy as np
+    from PIL import Image
+
+    out = tmp_path / "frames"
+    assert main(["demo", "--players", "2", "--spectators", "1", "--seconds", "3",
+                 "--render", str(out), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    files = sorted(out.glob("*.png"))
+    assert doc["frames_rendered"] == len(files) >= 30  # ~30 fps for 3 s
+    render = doc["latency_ms"]["capture_to_render"]
+    assert 0.0 < render["p50"] <= render["p99"]
+    # the presented frame comes after the spectator received it
+    assert render["p50"] > doc["latency_ms"]["capture_to_spectator"]["p50"]
+    first, last = (np.asarray(Image.open(f), dtype=np.int16) for f in (files[5], files[-1]))
+    background = np.median(last.reshape(-1, 3), axis=0)
+    # avatars are drawn (pixels far from the floor colour) and they moved between frames
+    assert (np.abs(last - background).sum(axis=2) > 60).mean() > 0.01
+    assert (np.abs(first - last).sum(axis=2) > 30).mean() > 0.002

@@ -49,7 +49,8 @@ class BvhSource:
     """Simulated trackers on a BVH performer; see the module docstring."""
 
     def __init__(self, path: str | Path, loop: bool = False,
-                 rate_hz: float | None = None) -> None:
+                 rate_hz: float | None = None, offset: tuple[float, float] = (0.0, 0.0),
+                 start_frame: int = 0) -> None:
         try:
             motion = read_bvh(path)  # a FormatError (file, line, what) propagates as it is
         except OSError as err:
@@ -71,13 +72,17 @@ class BvhSource:
         self.positions, self.rotations = self._devices(gq, gp)
         tq, tp = self._place_tpose(canon_q, canon_p, gp[0])
         self.tpose_positions, self.tpose_rotations = (a[0] for a in self._devices(tq, tp))
+        # several players replaying one clip stand apart and move out of step
+        shift = np.array([offset[0], 0.0, offset[1]])
+        self.positions += shift
+        self.tpose_positions = self.tpose_positions + shift
         # a headset samples at its own rate (90 Hz for a Vive), not the capture's: replay
         # at rate_hz by stepping through the clip by time, nearest frame
         self.rate_hz = float(rate_hz or motion.fps)
         self._step = float(motion.fps) / self.rate_hz
-        self._position = 0.0
         self.loop = loop
-        self.next_frame = 0
+        self.next_frame = start_frame % self.num_frames
+        self._position = float(self.next_frame)
 
     def _devices(self, gq: Array, gp: Array) -> tuple[Array, Array]:
         """Device positions (F, D, 3) and rotations (F, D, 4), ROLES order, from global
