@@ -72,12 +72,16 @@ def _parser() -> argparse.ArgumentParser:
                     help="interpolate: render slightly behind, SLERP between frames; "
                          "zero-buffer: the newest frame, least latency")
     vw.add_argument("--view", choices=("orbit", "first-person", "mirror"), default="orbit")
+    vw.add_argument("--screenshot", type=Path, default=None,
+                    help="window: save the last frame shown as a PNG")
     vw.add_argument("--max-rate", type=float, default=None,
                     help="ask the server for at most this many batches per second")
 
     dm = sub.add_parser("demo", help="a whole session on this machine, with latency table")
     dm.add_argument("--render", type=Path, default=None,
                     help="also run a headless viewer writing PNG frames to this folder")
+    dm.add_argument("--render-mode", choices=("interpolate", "zero-buffer"),
+                    default="interpolate", help="the viewer's snapshot mode (with --render)")
     dm.add_argument("--players", type=int, default=4)
     dm.add_argument("--spectators", type=int, default=2)
     dm.add_argument("--seconds", type=float, default=10.0)
@@ -188,7 +192,7 @@ def _view(args: argparse.Namespace) -> int:
         else:
             stats = asyncio.run(run_window_viewer(
                 args.server, args.room, width, height, fps=args.fps, mode=mode, view=view,
-                max_rate_hz=args.max_rate, frames=args.frames))
+                max_rate_hz=args.max_rate, frames=args.frames, screenshot=args.screenshot))
     except (NoDisplayError, GLUnavailableError, SessionError) as err:
         return _fail("view", err)
     except KeyboardInterrupt:
@@ -253,7 +257,7 @@ def _demo(args: argparse.Namespace) -> int:
     if args.players < 0 or args.spectators < 0 or args.seconds <= 0:
         return _fail("demo", "players and spectators must be >= 0 and seconds > 0")
     result = run_demo(args.players, args.spectators, args.seconds, solver=args.solver,
-                      render=args.render)
+                      render=args.render, render_mode=args.render_mode)
     if args.json:
         print(json.dumps(result.as_json()))
     else:

@@ -23,6 +23,7 @@ from client.player import PlayerStats, Ticker, run_player
 from client.sources.bvh_source import BvhSource
 from client.spectator import SpectatorStats, run_spectator
 from client.viewer.headless import HeadlessViewerProcess
+from client.viewer.interpolation import Mode
 
 ROOM = "demo"
 T = TypeVar("T")
@@ -130,7 +131,8 @@ def _players_process(pipe: Connection, url: str, players: int, seconds: float,
 
 
 async def run_clients(url: str, players: int, spectators: int, seconds: float,
-                      motion: Path, render: Path | None = None
+                      motion: Path, render: Path | None = None,
+                      render_mode: str = "interpolate"
                       ) -> tuple[int, list[SpectatorStats], dict[str, Any]]:
     """Spectators here, players in a process of their own: a player's capture must not
     wait behind spectators decoding (on separate machines it would not). Returns the
@@ -144,7 +146,8 @@ async def run_clients(url: str, players: int, spectators: int, seconds: float,
     process = ctx.Process(target=_players_process, args=(child, url, players, seconds,
                                                          motion), daemon=True)
     process.start()
-    viewer = HeadlessViewerProcess(url, ROOM, render) if render is not None else None
+    viewer = (HeadlessViewerProcess(url, ROOM, render, mode=Mode(render_mode))
+              if render is not None else None)
     if viewer is not None:  # a viewer of its own process: drawing holds the GIL
         await viewer.__aenter__()
     try:
@@ -171,13 +174,13 @@ async def run_clients(url: str, players: int, spectators: int, seconds: float,
 
 def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
              motion: Path | None = None, solver: str = "analytic",
-             render: Path | None = None) -> DemoResult:
+             render: Path | None = None, render_mode: str = "interpolate") -> DemoResult:
     """The session; with ``render``, a headless viewer also draws the room to PNG files
     there and its ``capture_to_render`` joins the latency stages."""
     motion = motion or builtin_motion_path()
     with EmbeddedServer(solver) as server:
         frames_sent, spectator_stats, viewed = _run(run_clients(
-            server.url, players, spectators, seconds, motion, render))
+            server.url, players, spectators, seconds, motion, render, render_mode))
     latency = LatencyRecorder.merged(s.latency for s in spectator_stats)
     for stage, samples in viewed.get("samples", {}).items():
         latency.add_values(stage, samples)
