@@ -74,6 +74,11 @@ def _turn_by_share(parents, q, gq, pre, post, lo, hi, j, rot, share, t4a, t4b):
 
 
 @njit(cache=True)
+def _range_of_motion(lo, hi, j):
+    return (hi[j, 0] - lo[j, 0]) + (hi[j, 1] - lo[j, 1]) + (hi[j, 2] - lo[j, 2])
+
+
+@njit(cache=True)
 def solve_spine(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, chain, n,
                 target):
     head = chain[n - 1]
@@ -99,10 +104,16 @@ def solve_spine(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, chain, n,
     s = math.sqrt(t4b[0] ** 2 + t4b[1] ** 2 + t4b[2] ** 2)
     ang = 2.0 * math.atan2(s, t4b[3])
     k = 0.0 if s < 1e-12 else ang / s
-    for i in range(3):
-        rv[i] = t4b[i] * k / n
+    # each joint (the head too) takes a share proportional to its range of motion: the
+    # neck turns and bends far more than a lumbar segment (limits.py)
+    total = 0.0
+    for i in range(n):
+        total += _range_of_motion(lo, hi, chain[i])
     for i in range(nb):
         j = chain[i]
+        share = _range_of_motion(lo, hi, j) / total
+        for d in range(3):
+            rv[d] = t4b[d] * k * share
         qaxis_angle(0.0, 0.0, 1.0, 0.0, rot)
         a = math.sqrt(rv[0] ** 2 + rv[1] ** 2 + rv[2] ** 2)
         if a > 1e-12:
