@@ -294,7 +294,7 @@ def test_spectator_rate_limit() -> None:
         return sends
 
     sends = asyncio.run(main())
-    assert 8 <= sends <= 13  # ~0.55 s at 20 Hz, not 50
+    assert 5 <= sends <= 16  # ~0.55 s at 20 Hz is ~11 sends, not 50 (slack for a busy CI)
 
 
 def test_shared_batch_is_encoded_once_and_parts_match_it() -> None:
