@@ -15,9 +15,12 @@ frame of the Vive recordings and of every DeviceSample.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
+import os
 import time
 import tomllib
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -236,10 +239,29 @@ class OpenVRSource:
             openvr.shutdown()
 
 
+@contextlib.contextmanager
+def _native_stderr_quiet() -> Iterator[None]:
+    """The native OpenVR library prints its own diagnostics to file descriptor 2 (e.g.
+    "Unable to read VR Path Registry"); our one-line SourceError says it better."""
+    try:
+        saved = os.dup(2)
+    except OSError:  # no stderr to silence
+        yield
+        return
+    try:
+        with open(os.devnull, "wb") as devnull:
+            os.dup2(devnull.fileno(), 2)
+            yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
 def _init_openvr() -> openvr.IVRSystem:
     """openvr.init as a background app (it never starts SteamVR itself), or SourceError."""
     try:
-        return openvr.init(openvr.VRApplication_Background)
+        with _native_stderr_quiet():
+            return openvr.init(openvr.VRApplication_Background)
     except openvr.error_code.OpenVRError as err:
         code = getattr(err, "error_value", None)
         name = (openvr.getVRInitErrorAsSymbol(code) if code is not None
