@@ -5,11 +5,16 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from solver.ik import DEFAULT_SOLVER, SOLVERS, SolverOptions
+
+if TYPE_CHECKING:
+    from client.player import Player, PlayerStats
 
 
 def _positive_ints(text: str) -> list[int]:
@@ -57,6 +62,10 @@ def _parser() -> argparse.ArgumentParser:
                     help="TOML file mapping tracker serial numbers to roles (openvr)")
     pl.add_argument("--loop", action="store_true", help="replay a recording forever")
     pl.add_argument("--seconds", type=float, default=None)
+    pl.add_argument("--calibrate-in", type=float, default=None,
+                    help="seconds to get into the T-pose before calibrating "
+                         "(default: 3 for openvr, 0 for recordings); press Enter to "
+                         "recalibrate while playing")
 
     vw = sub.add_parser("view", help="watch a room: skinned avatars in a window, or to PNGs")
     vw.add_argument("--server", required=True, help="ws://host:port")
@@ -227,7 +236,7 @@ def _play(args: argparse.Namespace) -> int:
     import asyncio
 
     from client.connection import SessionError
-    from client.player import run_player
+    from client.player import Player
     from client.sources import open_source
     from client.sources.base import SourceError
     from solver.readers.errors import FormatError
@@ -236,9 +245,11 @@ def _play(args: argparse.Namespace) -> int:
         source = open_source(args.source, args.devices, loop=args.loop)
     except (SourceError, FormatError) as err:
         return _fail("play", err)
+    delay = args.calibrate_in if args.calibrate_in is not None else (
+        3.0 if args.source == "openvr" else 0.0)
+    player = Player(args.server, args.room, args.name, source, token=args.token)
     try:
-        stats = asyncio.run(run_player(args.server, args.room, args.name, source,
-                                       seconds=args.seconds, token=args.token))
+        stats = asyncio.run(_play_live(player, delay, args.seconds))
     except SessionError as err:
         return _fail("play", err)
     except KeyboardInterrupt:
@@ -248,6 +259,28 @@ def _play(args: argparse.Namespace) -> int:
     print(f"sent {stats.frames_sent} frames in {stats.seconds:.1f} s"
           + (f"; server errors: {dict(stats.errors)}" if stats.errors else ""))
     return 0
+
+
+async def _play_live(player: Player, delay: float, seconds: float | None) -> PlayerStats:
+    """Count the player into the T-pose, then stream; Enter on a terminal recalibrates."""
+    import asyncio
+
+    for left in range(math.ceil(delay), 0, -1):
+        print(f"stand in a T-pose, arms out sideways: calibrating in {left} s", flush=True)
+        await asyncio.sleep(min(1.0, delay - (left - 1)))
+    loop = asyncio.get_running_loop()
+    interactive = sys.stdin.isatty()
+    if interactive:
+        def recalibrate() -> None:
+            sys.stdin.readline()
+            print("recalibrating: hold the T-pose", flush=True)
+            player.recalibrate()
+        loop.add_reader(sys.stdin.fileno(), recalibrate)
+    try:
+        return await player.run(seconds)
+    finally:
+        if interactive:
+            loop.remove_reader(sys.stdin.fileno())
 
 
 def _demo(args: argparse.Namespace) -> int:
