@@ -7,13 +7,18 @@ skipped, with the reason, where the data is absent.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import asyncio
+import contextlib
+from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 
 import pytest
 
+from server.app import Session, run_server
+
 REPO_ROOT = Path(__file__).resolve().parent.parent
 SHARED_DATA = REPO_ROOT.parent / "shared" / "data"
+SERVER_TIMEOUT = 10.0  # seconds for a test server to start or to stop
 
 
 def shared_data_path(path: str) -> Path:
@@ -29,3 +34,19 @@ def shared_data_path(path: str) -> Path:
 def shared_data() -> Callable[[str], Path]:
     """``shared_data("vive/kicking.csv")``: the path of a real data file, or a skip."""
     return shared_data_path
+
+
+@contextlib.asynccontextmanager
+async def serving(session: Session) -> AsyncIterator[str]:
+    """A real server for ``session`` on a free port of 127.0.0.1, for the length of the
+    block; yields its URL and shuts it down cleanly after."""
+    session.rooms.clear()
+    stop = asyncio.Event()
+    ready: asyncio.Future[int] = asyncio.get_running_loop().create_future()
+    server = asyncio.create_task(run_server("127.0.0.1", 0, session, stop, ready.set_result))
+    port = await asyncio.wait_for(ready, SERVER_TIMEOUT)
+    try:
+        yield f"ws://127.0.0.1:{port}"
+    finally:
+        stop.set()
+        await asyncio.wait_for(server, SERVER_TIMEOUT)

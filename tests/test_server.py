@@ -11,6 +11,7 @@ from pathlib import Path
 import msgpack
 import numpy as np
 import pytest
+from conftest import serving
 from websockets.asyncio.client import ClientConnection, connect
 
 from protocol import (
@@ -28,7 +29,7 @@ from protocol import (
     quantize_rotations,
     rotation_angle,
 )
-from server.app import Session, run_server
+from server.app import Session
 from server.outbox import Outbox
 from solver.calibration import calibrate
 from solver.ik import PoseBatch, Solver
@@ -55,17 +56,8 @@ def recording() -> ViveRecording:
 def run(test: Callable[[str], Awaitable[None]], session: Session) -> None:
     """Serve on a free port of 127.0.0.1, run the test against it, shut down cleanly."""
     async def main() -> None:
-        session.rooms.clear()
-        stop = asyncio.Event()
-        ready: asyncio.Future[int] = asyncio.get_running_loop().create_future()
-        server = asyncio.create_task(run_server("127.0.0.1", 0, session, stop,
-                                                ready.set_result))
-        port = await asyncio.wait_for(ready, TIMEOUT)
-        try:
-            await asyncio.wait_for(test(f"ws://127.0.0.1:{port}"), 60)
-        finally:
-            stop.set()
-            await asyncio.wait_for(server, TIMEOUT)
+        async with serving(session) as url:
+            await asyncio.wait_for(test(url), 60)
     asyncio.run(main())
 
 

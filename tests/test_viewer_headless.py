@@ -11,6 +11,7 @@ from typing import TypeVar
 
 import numpy as np
 import pytest
+from conftest import serving
 from PIL import Image
 
 from client.builtin import builtin_motion_path
@@ -22,7 +23,7 @@ from client.viewer.headless import HeadlessStats, render_spectator, run_headless
 from client.viewer.interpolation import Mode
 from client.viewer.renderer import BACKGROUND, GLUnavailableError, create_headless_context
 from client.viewer.window import NoDisplayError, check_display, run_window_viewer
-from server.app import Session, run_server
+from server.app import Session
 
 T = TypeVar("T")
 TIMEOUT = 5.0
@@ -45,24 +46,16 @@ def session() -> Session:
 def with_player(test: Callable[[str], Awaitable[T]], session: Session) -> T:
     """Serve on a free port, stream the built-in walk as one player, run ``test(url)``."""
     async def main() -> T:
-        session.rooms.clear()
-        stop = asyncio.Event()
-        ready: asyncio.Future[int] = asyncio.get_running_loop().create_future()
-        server = asyncio.create_task(run_server("127.0.0.1", 0, session, stop,
-                                                ready.set_result))
-        port = await asyncio.wait_for(ready, TIMEOUT)
-        url = f"ws://127.0.0.1:{port}"
-        source = BvhSource(builtin_motion_path(), loop=True, rate_hz=90.0)
-        player_stop = asyncio.Event()
-        player = asyncio.create_task(run_player(url, "viewing", "walker", source,
-                                                stop=player_stop))
-        try:
-            return await asyncio.wait_for(test(url), 60)
-        finally:
-            player_stop.set()
-            await asyncio.wait_for(player, TIMEOUT)
-            stop.set()
-            await asyncio.wait_for(server, TIMEOUT)
+        async with serving(session) as url:
+            source = BvhSource(builtin_motion_path(), loop=True, rate_hz=90.0)
+            player_stop = asyncio.Event()
+            player = asyncio.create_task(run_player(url, "viewing", "walker", source,
+                                                    stop=player_stop))
+            try:
+                return await asyncio.wait_for(test(url), 60)
+            finally:
+                player_stop.set()
+                await asyncio.wait_for(player, TIMEOUT)
     return asyncio.run(main())
 
 
