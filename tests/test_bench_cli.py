@@ -1,0 +1,39 @@
+"""The bench commands keep DESIGN.md's JSON contract (other tools read it)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from client.cli import main
+
+
+def test_bench_solver_json(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["bench", "solver", "--avatars", "1,3", "--seconds", "0.2", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["solver"] == "analytic"
+    assert [r["avatars"] for r in doc["results"]] == [1, 3]
+    for r in doc["results"]:
+        assert 0.0 < r["us_per_avatar_frame"] < 10_000.0
+
+
+def test_bench_solver_paper_by_name(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["bench", "solver", "--solver", "paper", "--avatars", "2",
+                 "--seconds", "0.2", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["solver"] == "paper" and doc["results"][0]["avatars"] == 2
+
+
+def test_bench_protocol_json(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["bench", "protocol", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["joints"] == 53 and 250 < doc["bytes_per_avatar_frame"] < 400
+    assert doc["quantization_worst_deg_measured"] <= doc["quantization_bound_deg"] <= 0.1
+
+
+def test_bad_batch_sizes_are_refused(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        main(["bench", "solver", "--avatars", "0,x"])
+    assert exit_info.value.code == 2
+    assert "expected" in capsys.readouterr().err
