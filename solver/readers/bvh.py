@@ -33,6 +33,7 @@ from numpy.typing import NDArray
 from solver import rotations as rot
 from solver.motion import Motion
 from solver.readers.errors import FormatError
+from solver.readers.text import read_lines
 from solver.skeleton import Skeleton
 
 Array = NDArray[np.float64]
@@ -130,7 +131,7 @@ def read_bvh(path: str | Path, scale: float | None = None) -> Motion:
     if scale is not None and not (math.isfinite(scale) and scale > 0.0):
         raise ValueError(f"scale must be a positive number of metres per unit, got {scale}")
     src = str(path)
-    lines = _read_lines(Path(path), src)
+    lines = read_lines(Path(path), src, "utf-8", "UTF-8 text")
     cursor = _Cursor(src, lines)
     joints = _parse_hierarchy(cursor)
     header = _parse_motion_header(cursor)
@@ -153,22 +154,6 @@ def read_bvh(path: str | Path, scale: float | None = None) -> Motion:
     skeleton = Skeleton(names, parents, translations[first].copy(), tips * unit)
     return Motion(skeleton=skeleton, rotations=rotations, translations=translations,
                   fps=_fps(header.frame_time), source=src, first_frame=first)
-
-
-def _read_lines(path: Path, src: str) -> list[str]:
-    data = path.read_bytes()
-    try:
-        text = data.decode("utf-8")
-    except UnicodeDecodeError as err:
-        line = data.count(b"\n", 0, err.start) + 1
-        raise FormatError(src, line, f"expected UTF-8 text, found byte "
-                                     f"0x{data[err.start]:02x}") from None
-    # split on "\n" only (not str.splitlines, which also splits on form feeds and the
-    # like) so line numbers match what an editor shows; some exports mix CRLF and LF
-    lines = [line.rstrip("\r") for line in text.split("\n")]
-    while lines and not lines[-1].strip():
-        lines.pop()
-    return lines
 
 
 def _number(cursor: _Cursor, token: str, what: str) -> float:

@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 
 from solver.motion import ViveRecording
 from solver.readers.errors import FormatError
+from solver.readers.text import read_lines
 
 VIVE_FPS = 90.0  # the recordings are replayed at 90 Hz (see the data README)
 HEADER = ("tag", "rawPosX", "rawPosY", "rawPosZ", "rawRotX", "rawRotY", "rawRotZ", "rawRotW",
@@ -40,7 +41,7 @@ _Problem = tuple[int, int, str]
 def read_vive(path: str | Path) -> ViveRecording:
     """Read a Vive recording; raise ``FormatError`` (file, line, what) for any bad input."""
     src = str(path)
-    lines = _read_lines(Path(path), src)
+    lines = read_lines(Path(path), src, "ascii", "plain ASCII text")
     _check_header(src, lines)
     rows = [line.split() for line in lines[1:]]
     if not rows:
@@ -59,21 +60,6 @@ def read_vive(path: str | Path) -> ViveRecording:
         raise FormatError(src, row + FIRST_BODY_LINE, message)
     _check_complete(src, tags, first)
     return _recording(src, first, values)
-
-
-def _read_lines(path: Path, src: str) -> list[str]:
-    """The file's lines without line ends; trailing empty lines dropped."""
-    data = path.read_bytes()
-    try:
-        text = data.decode("ascii")
-    except UnicodeDecodeError as err:
-        line = data.count(b"\n", 0, err.start) + 1
-        raise FormatError(src, line, f"expected plain ASCII text, found byte "
-                                     f"0x{data[err.start]:02x}") from None
-    lines = [line.rstrip("\r") for line in text.split("\n")]
-    while lines and not lines[-1].strip():
-        lines.pop()
-    return lines
 
 
 def _check_header(src: str, lines: list[str]) -> None:
