@@ -103,9 +103,7 @@ class AvatarSolver:
         self._rotations[slot] = cal.pose
         self._roots[slot] = cal.root
         self._offsets[slot] = cal.offsets
-        mounts = [cal.mounts[d] for d in EFFECTOR_DEVICES]
-        self._mount_p[slot] = [m.position for m in mounts]
-        self._mount_q[slot] = [m.rotation for m in mounts]
+        self._mount_p[slot], self._mount_q[slot] = cal.effector_mounts()
         return cal
 
     def remove(self, avatar_id: int) -> None:

@@ -21,6 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from solver import rotations as R
+from solver.kernels import bone_targets
 from solver.motion import DRIVING_DEVICES
 from solver.rig import EFFECTORS, Rig, global_pose
 
@@ -67,15 +68,20 @@ class Calibration:
     def targets(self, positions: NDArray[np.float64], rotations: NDArray[np.float64],
                 devices: tuple[str, ...]) -> NDArray[np.float64]:
         """Bone targets (F, 6, 7) for the solver from device poses (F, D, 3/4)."""
-        F = positions.shape[0]
-        out = np.empty((F, len(EFFECTORS), 7))
-        for e, name in enumerate(EFFECTOR_DEVICES):
-            d = devices.index(name)
-            m = self.mounts[name]
-            bone_q = R.mul(rotations[:, d], R.conjugate(m.rotation))
-            out[:, e, :3] = positions[:, d] - R.rotate(bone_q, m.position)
-            out[:, e, 3:] = bone_q
+        idx = [devices.index(name) for name in EFFECTOR_DEVICES]
+        F, E = positions.shape[0], len(EFFECTORS)
+        device = np.concatenate([positions[:, idx], rotations[:, idx]], axis=-1)
+        mount_p, mount_q = self.effector_mounts()
+        out = np.empty((F, E, 7))
+        bone_targets(device.reshape(F * E, 7), np.tile(mount_p, (F, 1)),
+                     np.tile(mount_q, (F, 1)), out.reshape(F * E, 7))
         return out
+
+    def effector_mounts(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The driving devices' mount positions (6, 3) and rotations (6, 4), in
+        EFFECTOR_DEVICES order."""
+        mounts = [self.mounts[d] for d in EFFECTOR_DEVICES]
+        return (np.array([m.position for m in mounts]), np.array([m.rotation for m in mounts]))
 
     def predict(self, gq: NDArray[np.float64], gp: NDArray[np.float64],
                 devices: tuple[str, ...]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
