@@ -9,8 +9,6 @@ array operations whatever the number of avatars.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 from numpy.typing import NDArray
 
@@ -25,15 +23,6 @@ Array = NDArray[np.float64]
 
 class NotCalibratedError(ValueError):
     """A tracker frame for an avatar that has not sent its T-pose yet."""
-
-
-@dataclass(frozen=True)
-class Solved:
-    """One batch's result: per avatar, in the order asked."""
-
-    avatar_ids: tuple[int, ...]
-    rotations: Array  # (B, J, 4)
-    roots: Array  # (B, 3)
 
 
 def pose_dicts(roles: tuple[str, ...], positions: Array,
@@ -110,9 +99,10 @@ class AvatarSolver:
         self.calibrations.pop(avatar_id, None)
         self._slot.pop(avatar_id, None)
 
-    def solve(self, frames: list[tuple[int, tuple[str, ...], Array, Array]]) -> Solved:
+    def solve(self, frames: list[tuple[int, tuple[str, ...], Array, Array]]) -> PoseBatch:
         """Solve the avatars of ``frames`` [(avatar id, roles, positions (D, 3), rotations
-        (D, 4))] as one batch, each warm-started from its last pose."""
+        (D, 4))] as one batch, each warm-started from its last pose; their new poses in
+        the order asked."""
         B = len(frames)
         device = np.empty((B, len(EFFECTORS), 7))
         slots = np.empty(B, dtype=np.intp)
@@ -133,4 +123,4 @@ class AvatarSolver:
         self.solver.solve(targets, state, self._offsets[slots])
         self._rotations[slots] = state.rotations
         self._roots[slots] = state.root
-        return Solved(tuple(f[0] for f in frames), state.rotations, state.root)
+        return state

@@ -158,7 +158,7 @@ class Room:
                                     for a, f, _ in pending])
         t_solved = now()
         shared = SharedBatch([a for a, _, _ in pending], [f.seq for _, f, _ in pending],
-                             solved.roots, solved.rotations,
+                             solved.root, solved.rotations,
                              [f.t_capture_server for _, f, _ in pending],
                              [t for _, _, t in pending], t_solved)
         self.metrics.frames_solved += len(pending)

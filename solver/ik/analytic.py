@@ -331,6 +331,8 @@ def aim_clavicle(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, clav, up
     chain1[0] = clav
     chain1[1] = upper
     fk_joints(parents, offsets, q, gq, gp, chain1, 2)
+    if share == 0.0:  # the default: the clavicle stays neutral
+        return
     # canonical arm direction in the clavicle's frame: c_u (o_mid + c_m o_end)
     v = np.empty(3)
     w = np.empty(3)
