@@ -60,9 +60,10 @@ class _Samples:
 class LatencyRecorder:
     """Latency samples (seconds) per stage name.
 
-    ``add`` takes the dict ``AvatarFrame.latencies`` returns; ``add_values`` a whole
-    array for one stage. ``capacity`` is the initial size of each stage's buffer
-    (90 Hz x 16 avatars x 20 s is ~29k samples; buffers double as needed).
+    ``add`` takes the dict ``AvatarFrame.latencies`` or ``AvatarBatch.latencies``
+    returns; ``add_values`` a whole array for one stage. ``capacity`` is the initial
+    size of each stage's buffer (90 Hz x 16 avatars x 20 s is ~29k samples; buffers
+    double as needed).
     """
 
     def __init__(self, capacity: int = 4096) -> None:
@@ -75,10 +76,14 @@ class LatencyRecorder:
             buf = self._stages[stage] = _Samples(self.capacity)
         return buf
 
-    def add(self, latencies: Mapping[str, float]) -> None:
-        """One frame's stage durations, seconds."""
+    def add(self, latencies: Mapping[str, float | NDArray[np.float64]]) -> None:
+        """Stage durations, seconds: one frame's (floats, ``AvatarFrame.latencies``) or
+        a batch's (an array per stage, ``AvatarBatch.latencies``)."""
         for stage, seconds in latencies.items():
-            self._buffer(stage).append(seconds)
+            if isinstance(seconds, np.ndarray):
+                self._buffer(stage).extend(seconds)
+            else:
+                self._buffer(stage).append(seconds)
 
     def add_values(self, stage: str, seconds: ArrayLike) -> None:
         """Many samples of one stage at once, seconds."""

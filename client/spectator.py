@@ -35,10 +35,17 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class ReceivedFrame:
-    """An avatar's latest frame and when it arrived (local clock: ``client.sources.now``)."""
+    """An avatar's latest frame (row ``index`` of ``batch``) and when it arrived (local
+    clock: ``client.sources.now``). The AvatarFrame is built only when asked for: a
+    headless spectator never needs it."""
 
-    frame: AvatarFrame
+    batch: AvatarBatch
+    index: int
     t_received: float
+
+    @property
+    def frame(self) -> AvatarFrame:
+        return self.batch.frame(self.index)
 
 
 @dataclass
@@ -117,11 +124,12 @@ class Spectator:
         stats = self.stats
         # receive-side stages only with a synced clock; server-side ones need no clock
         t_server = clock.to_server(t_local) if clock.synced else None
-        for f in batch.frames:
-            self.latest[f.avatar_id] = ReceivedFrame(f, t_local)
-            stats.frames_per_avatar[f.avatar_id] += 1
-            stats.latency.add(f.latencies(t_received=t_server))
-        stats.frames_received += len(batch.frames)
+        ids = batch.avatar_ids.tolist()
+        for i, avatar_id in enumerate(ids):
+            self.latest[avatar_id] = ReceivedFrame(batch, i, t_local)
+        stats.frames_per_avatar.update(ids)
+        stats.latency.add(batch.latencies(t_received=t_server))
+        stats.frames_received += len(ids)
         stats.batches_received += 1
 
     def on_roster(self, roster: AvatarRoster) -> None:

@@ -17,7 +17,6 @@ from protocol.codec import decode, decode_client, encode
 from protocol.errors import ErrorCode, ProtocolError
 from protocol.messages import (
     CLIENT_MESSAGES,
-    FRAME_FIELDS,
     MESSAGE_TYPES,
     PROTOCOL_VERSION,
     SERVER_MESSAGES,
@@ -50,7 +49,7 @@ from protocol.validation import MAX_CLIENT_MESSAGE_BYTES, MAX_JOINTS, MAX_MESSAG
 
 __all__ = [
     "BYTES_PER_ROTATION", "CALIBRATION_ROLES", "CLIENT_MESSAGES", "DEVICE_ROLES",
-    "FRAME_FIELDS", "MAX_ANGLE_ERROR_DEG", "MAX_CLIENT_MESSAGE_BYTES", "MAX_JOINTS",
+    "MAX_ANGLE_ERROR_DEG", "MAX_CLIENT_MESSAGE_BYTES", "MAX_JOINTS",
     "MAX_MESSAGE_BYTES", "MESSAGE_TYPES", "PROTOCOL_VERSION", "SERVER_MESSAGES",
     "SUPPORTED_VERSIONS",
     "AvatarBatch", "AvatarFrame", "AvatarInfo", "AvatarRoster", "Calibrate", "ClientMessage",

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol.codec import decode, decode_client, encode
+from protocol.codec import decode, decode_client, encode, encode_avatar_batch
 from protocol.messages import AvatarBatch, TrackerFrame
 from protocol.roles import DEVICE_ROLES, DeviceRole
 
@@ -77,7 +77,7 @@ def tracker_frame_bytes(roles: tuple[DeviceRole, ...] = DEVICE_ROLES) -> int:
 def bytes_per_avatar_frame(num_joints: int = MAKEHUMAN_JOINTS, avatars: int = 16) -> float:
     """Wire bytes one avatar adds to a batch of ``avatars`` (batch header excluded)."""
     full = len(encode(sample_avatar_batch(avatars, num_joints)))
-    empty = len(encode(AvatarBatch(frames=())))
+    empty = len(encode(AvatarBatch.from_frames([], t_sent=0.0)))
     return (full - empty) / avatars
 
 
@@ -90,7 +90,8 @@ def time_decode_tracker_frame(runs: int = 20000,
 
 def time_avatar_batch(avatars: int = 16, num_joints: int = MAKEHUMAN_JOINTS,
                       runs: int = 2000) -> dict[str, Timing]:
-    """Server side: build + encode a batch; viewer side: decode + validate it."""
+    """Server side: encode a batch from the solver's arrays (``encode_avatar_batch``, as
+    the server does); viewer side: decode + validate it."""
     batch = sample_avatar_batch(avatars, num_joints)
     rng = np.random.default_rng(1)
     roots = rng.uniform(-2.0, 2.0, (avatars, 3))
@@ -99,8 +100,7 @@ def time_avatar_batch(avatars: int = 16, num_joints: int = MAKEHUMAN_JOINTS,
     times = [1.7e9] * avatars
 
     def build_and_encode() -> bytes:
-        return encode(AvatarBatch.from_arrays(ids, ids, roots, rotations, times, times,
-                                              1.7e9, 1.7e9))
+        return encode_avatar_batch(ids, ids, roots, rotations, times, times, 1.7e9, 1.7e9)
 
     data = encode(batch)
     return {"build_encode": time_calls(build_and_encode, runs),

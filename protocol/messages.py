@@ -4,13 +4,14 @@ Client -> server: Hello, TrackerFrame, Calibrate, Ping, Leave.
 Server -> client: Welcome, AvatarRoster (of AvatarInfo), AvatarBatch (of AvatarFrame),
 Pong, Error.
 
-Each message has a ``type`` literal that names it on the wire. AvatarInfo and AvatarFrame
-are records inside a roster or a batch, not messages: frames always travel in an
-AvatarBatch (of one when alone), so a viewer has one way to receive them.
+Each message has a ``type`` literal that names it on the wire. AvatarInfo is a record
+inside a roster; solved poses always travel in an AvatarBatch (of one when alone), a set
+of columns with one row per avatar, so a viewer has one way to receive them, and
+``AvatarBatch.frame`` gives one avatar's AvatarFrame.
 
-Arrays are read-only float64 numpy arrays in Python and packed little-endian bytes on the
-wire (``model_dump()`` gives the wire form; ``protocol.codec`` adds msgpack). Times are
-float seconds. Quaternions are x, y, z, w.
+Arrays are read-only numpy arrays (float64, and int64 for ids) in Python and packed
+little-endian bytes on the wire (``model_dump()`` gives the wire form; ``protocol.codec``
+adds msgpack). Times are float seconds. Quaternions are x, y, z, w.
 
 Time of a tracker frame: it carries ``t_capture`` on the *client's* clock plus the
 client's current ``clock_offset`` estimate (server = client + offset), rather than one
@@ -22,6 +23,7 @@ log the client's offset (a jump in it shows up), and costs 9 bytes.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from typing import Annotated, Any, Literal
 
@@ -36,16 +38,18 @@ from pydantic import (
     ValidationInfo,
     field_serializer,
     field_validator,
+    model_serializer,
     model_validator,
 )
 from pydantic_core import PydanticCustomError
 
-from protocol.quantize import BYTES_PER_ROTATION, dequantize_rotations, quantize_rotations
+from protocol.quantize import dequantize_rotations, quantize_rotations
 from protocol.roles import CALIBRATION_ROLES, DEVICE_ROLES, DeviceRole
 from protocol.validation import (
     MAX_AVATARS,
     MAX_JOINTS,
     Int,
+    IntArray,
     Name,
     RateHz,
     RoomName,
@@ -55,8 +59,10 @@ from protocol.validation import (
     as_rows,
     check_positions,
     device_poses,
+    int_column,
     is_wire,
     readonly,
+    time_column,
     unit_quaternions,
 )
 
@@ -268,23 +274,37 @@ class Calibrate(_DevicePoses):
 
 
 # --------------------------------------------------------------------------- solved poses
-# the order of an AvatarFrame's fields on the wire: inside a batch a frame is an array,
-# not a map, since the field names would be ~18% of its bytes
-FRAME_FIELDS = ("avatar_id", "seq", "root", "rotations", "t_capture", "t_server_receive",
-                "t_solved", "t_sent")
+def stage_latencies(t_capture: Any, t_server_receive: Any, t_solved: Any, t_sent: Any,
+                    t_received: float | None = None, t_presented: float | None = None,
+                    ) -> dict[str, Any]:
+    """Stage durations in seconds, for one frame's times (floats) or a batch's columns
+    (arrays, one value per avatar): the one definition of the stages. Pass viewer times
+    already on the server clock."""
+    out = {"capture_to_server": t_server_receive - t_capture,
+           "solve": t_solved - t_server_receive,
+           "server": t_sent - t_server_receive}
+    if t_received is not None:
+        out["capture_to_spectator"] = t_received - t_capture
+        out["network_to_spectator"] = t_received - t_sent
+    if t_presented is not None:
+        out["capture_to_presented"] = t_presented - t_capture
+        if t_received is not None:
+            out["receive_to_presented"] = t_presented - t_received
+    return out
 
 
 class AvatarFrame(_Model):
     """One avatar's solved pose and every timestamp of its way, all on the server clock.
 
-    A viewer records its own receive and presented times (converted with its clock
-    estimator); ``latencies`` gives the stages.
+    On the wire it travels as a row of an AvatarBatch (``AvatarBatch.frame``). A viewer
+    records its own receive and presented times (converted with its clock estimator);
+    ``latencies`` gives the stages.
     """
 
     avatar_id: Int
     seq: Int  # seq of the TrackerFrame this was solved from
-    root: Array  # (3,) root joint position, metres; float32 on the wire
-    rotations: Array  # (J, 4) local joint rotations; 5 bytes each on the wire (quantize.py)
+    root: Array  # (3,) root joint position, metres
+    rotations: Array  # (J, 4) local joint rotations
     t_capture: Time  # TrackerFrame.t_capture_server
     t_server_receive: Time
     t_solved: Time
@@ -292,10 +312,8 @@ class AvatarFrame(_Model):
 
     @field_validator("root", mode="plain")
     @classmethod
-    def _root(cls, value: Any, info: ValidationInfo) -> Array:
-        if isinstance(value, _Prechecked):
-            return value.array
-        rows = as_rows(value, 3, is_wire(info), wire_dtype="<f4")
+    def _root(cls, value: Any) -> Array:
+        rows = as_rows(value, 3, wire=False)
         if rows.shape[0] != 1:
             raise ValueError(f"expected one position (3 numbers), got {rows.shape[0]} rows")
         check_positions(rows)
@@ -303,15 +321,8 @@ class AvatarFrame(_Model):
 
     @field_validator("rotations", mode="plain")
     @classmethod
-    def _rotations(cls, value: Any, info: ValidationInfo) -> Array:
-        if isinstance(value, _Prechecked):
-            return value.array
-        if isinstance(value, bytes | bytearray | memoryview):
-            if not 0 < len(value) <= MAX_JOINTS * BYTES_PER_ROTATION:
-                raise ValueError(f"{len(value)} bytes: 1 to {MAX_JOINTS} joints of "
-                                 f"{BYTES_PER_ROTATION} bytes expected")
-            return readonly(dequantize_rotations(bytes(value)))
-        q = as_rows(value, 4, is_wire(info))
+    def _rotations(cls, value: Any) -> Array:
+        q = as_rows(value, 4, wire=False)
         if not 1 <= q.shape[0] <= MAX_JOINTS:
             raise ValueError(f"{q.shape[0]} joints; 1 to {MAX_JOINTS} allowed")
         return readonly(unit_quaternions(q))
@@ -319,149 +330,204 @@ class AvatarFrame(_Model):
     def latencies(self, t_received: float | None = None,
                   t_presented: float | None = None) -> dict[str, float]:
         """Stage durations in seconds; pass viewer times already on the server clock."""
-        out = {"capture_to_server": self.t_server_receive - self.t_capture,
-               "solve": self.t_solved - self.t_server_receive,
-               "server": self.t_sent - self.t_server_receive}
-        if t_received is not None:
-            out["capture_to_spectator"] = t_received - self.t_capture
-            out["network_to_spectator"] = t_received - self.t_sent
-        if t_presented is not None:
-            out["capture_to_presented"] = t_presented - self.t_capture
-            if t_received is not None:
-                out["receive_to_presented"] = t_presented - t_received
-        return out
-
-
-class _Prechecked:
-    """An array AvatarBatch has already validated, for the whole batch in one pass."""
-
-    __slots__ = ("array",)
-
-    def __init__(self, array: Array) -> None:
-        self.array = array
+        return stage_latencies(self.t_capture, self.t_server_receive, self.t_solved,
+                               self.t_sent, t_received, t_presented)
 
 
 class AvatarBatch(_Model):
-    """Avatar frames solved together, sent together."""
+    """Avatar poses solved together and sent together, as columns.
+
+    Row b of every per-avatar column is avatar b; its joint rotations are the next
+    ``joint_counts[b]`` rows of ``rotations``. Columns rather than a list of per-avatar
+    records: a receiver checks and converts a whole batch in a few numpy calls however
+    many avatars it holds (a record cost ~8 us to validate, and a spectator of 16 players
+    gets 16 avatars 90 times a second). ``frame(b)`` gives avatar b as an AvatarFrame.
+    """
 
     type: Literal["avatar_batch"] = "avatar_batch"
-    frames: tuple[AvatarFrame, ...] = Field(max_length=MAX_AVATARS)
+    avatar_ids: IntArray  # (B,) distinct; int64 on the wire
+    seqs: IntArray  # (B,) seq of the TrackerFrame each pose was solved from; int64
+    roots: Array  # (B, 3) root joint positions, metres; float32 on the wire
+    joint_counts: IntArray  # (B,) joints of each avatar, 1..MAX_JOINTS; uint16
+    rotations: Array  # (sum of joint_counts, 4) local joint rotations; 5 bytes each
+    t_capture: Array  # (B,) TrackerFrame.t_capture_server of each; float64
+    t_server_receive: Array  # (B,)
+    t_solved: Array  # (B,)
+    t_sent: Time  # when the server sent the batch
 
-    @model_validator(mode="before")
+    @field_validator("avatar_ids", mode="plain")
     @classmethod
-    def _from_wire(cls, data: Any, info: ValidationInfo) -> Any:
-        frames = data.get("frames") if isinstance(data, dict) else None
-        if not is_wire(info) or not isinstance(frames, list | tuple):
-            return data
-        for i, f in enumerate(frames):
-            if not isinstance(f, list | tuple) or len(f) != len(FRAME_FIELDS):
-                got = f"{len(f)} items" if isinstance(f, list | tuple) else type(f).__name__
-                raise ValueError(f"frames[{i}]: expected an array of the {len(FRAME_FIELDS)} "
-                                 f"fields {', '.join(FRAME_FIELDS)}; got {got}")
-        return {**data, "frames": _decode_together(frames)}
+    def _ids(cls, value: Any, info: ValidationInfo) -> IntArray:
+        ids = int_column(value, is_wire(info), "<i8")
+        if ids.shape[0] > MAX_AVATARS:
+            raise ValueError(f"{ids.shape[0]} avatars; at most {MAX_AVATARS} per batch")
+        if len(set(ids.tolist())) != ids.shape[0]:
+            raise ValueError(f"avatar_id {_first_duplicate(ids.tolist())} appears more "
+                             f"than once")
+        return readonly(ids)
+
+    @field_validator("seqs", "t_capture", "t_server_receive", "t_solved", mode="plain")
+    @classmethod
+    def _per_avatar(cls, value: Any, info: ValidationInfo) -> Array | IntArray:
+        column: NDArray[Any]
+        if info.field_name == "seqs":
+            column = int_column(value, is_wire(info), "<i8")
+        else:
+            column = time_column(value, is_wire(info))
+        _same_length(column, info)
+        return readonly(column)
+
+    @field_validator("roots", mode="plain")
+    @classmethod
+    def _roots(cls, value: Any, info: ValidationInfo) -> Array:
+        roots = as_rows(value, 3, is_wire(info), wire_dtype="<f4")
+        _same_length(roots, info)
+        check_positions(roots)
+        return readonly(roots)
+
+    @field_validator("joint_counts", mode="plain")
+    @classmethod
+    def _counts(cls, value: Any, info: ValidationInfo) -> IntArray:
+        counts = int_column(value, is_wire(info), "<u2")
+        _same_length(counts, info)
+        if counts.shape[0] and (counts.min() < 1 or counts.max() > MAX_JOINTS):
+            bad = np.flatnonzero((counts < 1) | (counts > MAX_JOINTS))
+            raise ValueError(f"avatar {bad[0]} has {counts[bad[0]]} joints; 1 to "
+                             f"{MAX_JOINTS} allowed")
+        return readonly(counts)
+
+    @field_validator("rotations", mode="plain")
+    @classmethod
+    def _rotations(cls, value: Any, info: ValidationInfo) -> Array:
+        counts = info.data.get("joint_counts")
+        try:
+            if isinstance(value, bytes | bytearray | memoryview):
+                q = dequantize_rotations(value)
+            else:
+                q = unit_quaternions(as_rows(value, 4, is_wire(info)))
+        except ValueError as exc:  # "joint 106: ..." -> "avatar 2 (joint 0): ..."
+            raise ValueError(_name_avatar(str(exc), counts)) from None
+        if counts is not None and q.shape[0] != int(counts.sum()):
+            raise ValueError(f"{q.shape[0]} rotations for joint_counts summing to "
+                             f"{int(counts.sum())}")
+        return readonly(q)
+
+    @model_serializer(mode="plain")
+    def _wire(self) -> dict[str, Any]:
+        return avatar_batch_wire(self.avatar_ids, self.seqs, self.roots, self.joint_counts,
+                                 self.rotations, self.t_capture, self.t_server_receive,
+                                 self.t_solved, self.t_sent)
 
     @classmethod
     def from_arrays(cls, avatar_ids: Sequence[int], seqs: Sequence[int], roots: ArrayLike,
-                    rotations: ArrayLike | Sequence[ArrayLike], t_capture: Sequence[float],
-                    t_server_receive: Sequence[float], t_solved: float, t_sent: float,
+                    rotations: ArrayLike | Sequence[ArrayLike], t_capture: ArrayLike,
+                    t_server_receive: ArrayLike, t_solved: ArrayLike, t_sent: float,
                     ) -> AvatarBatch:
-        """A batch straight from the solver's arrays, checked in one pass per array.
-
-        ``roots`` (B, 3); ``rotations`` (B, J, 4), or a sequence of (J_i, 4) arrays when
-        the avatars' skeletons differ. Same checks as building each AvatarFrame, faster.
-        """
+        """A batch from the solver's arrays: ``roots`` (B, 3); ``rotations`` (B, J, 4),
+        or a sequence of (J_b, 4) arrays when the skeletons differ; ``t_solved`` one time
+        for all or one per avatar. Copies: the solver may reuse its buffers."""
         n = len(avatar_ids)
-        root_rows = as_rows(roots, 3, wire=False)
         if isinstance(rotations, np.ndarray) and rotations.ndim == 3:
-            if rotations.shape[2] != 4:
-                raise ValueError(f"from_arrays: rotations of shape {rotations.shape}; "
-                                 f"(B, J, 4) expected")
             counts = [rotations.shape[1]] * rotations.shape[0]
-            # a copy: the frames must not change when the solver reuses its buffers
-            flat = np.array(rotations, dtype=np.float64).reshape(-1, 4)
+            flat = rotations.reshape(-1, rotations.shape[2])
         else:
-            parts = [as_rows(r, 4, wire=False) for r in rotations]  # type: ignore[union-attr]
+            parts = [np.asarray(r, dtype=np.float64) for r in rotations]  # type: ignore[union-attr]
             counts = [len(p) for p in parts]
             flat = np.concatenate(parts) if parts else np.zeros((0, 4))
-        if not (len(seqs) == len(t_capture) == len(t_server_receive) == len(root_rows)
-                == len(counts) == n):
-            raise ValueError(f"from_arrays: {n} avatar_ids but {len(seqs)} seqs, "
-                             f"{len(root_rows)} roots, {len(counts)} rotation sets, "
-                             f"{len(t_capture)} t_capture, {len(t_server_receive)} "
-                             f"t_server_receive")
-        if any(not 1 <= c <= MAX_JOINTS for c in counts):
-            raise ValueError(f"from_arrays: joint counts {counts}; 1 to {MAX_JOINTS} allowed")
-        check_positions(root_rows)
-        unit = readonly(unit_quaternions(flat))
-        rows = [{"avatar_id": int(avatar_ids[i]), "seq": int(seqs[i]),
-                 "t_capture": float(t_capture[i]),
-                 "t_server_receive": float(t_server_receive[i]),
-                 "t_solved": float(t_solved), "t_sent": float(t_sent)} for i in range(n)]
-        _set_prechecked(rows, readonly(root_rows), unit, counts)
-        return cls(frames=tuple(rows))  # type: ignore[arg-type]
+        return cls.model_validate({
+            "avatar_ids": avatar_ids, "seqs": seqs, "roots": np.reshape(roots, (-1, 3)),
+            "joint_counts": counts, "rotations": flat, "t_capture": t_capture,
+            "t_server_receive": t_server_receive,
+            "t_solved": np.broadcast_to(np.asarray(t_solved, dtype=np.float64), (n,)),
+            "t_sent": float(t_sent)})
 
-    @model_validator(mode="after")
-    def _distinct(self) -> AvatarBatch:
-        dup = _first_duplicate([f.avatar_id for f in self.frames])
-        if dup is not None:
-            raise ValueError(f"frames: avatar_id {dup} appears more than once")
-        return self
+    @classmethod
+    def from_frames(cls, frames: Sequence[AvatarFrame], t_sent: float) -> AvatarBatch:
+        """The frames (each avatar at most once) as one batch sent at ``t_sent``."""
+        return cls.from_arrays([f.avatar_id for f in frames], [f.seq for f in frames],
+                               np.array([f.root for f in frames]).reshape(-1, 3),
+                               [f.rotations for f in frames],
+                               [f.t_capture for f in frames],
+                               [f.t_server_receive for f in frames],
+                               [f.t_solved for f in frames], t_sent)
 
-    @field_serializer("frames")
-    def _frames_wire(self, frames: tuple[AvatarFrame, ...]) -> list[list[Any]]:
-        # quantize every rotation and convert every root in one call each, then cut the
-        # bytes per avatar
-        if not frames:
-            return []
-        packed = quantize_rotations(np.concatenate([f.rotations for f in frames]))
-        roots = np.array([f.root for f in frames], dtype="<f4").tobytes()
-        out, start = [], 0
-        for i, f in enumerate(frames):
-            end = start + BYTES_PER_ROTATION * f.rotations.shape[0]
-            out.append([f.avatar_id, f.seq, roots[12 * i:12 * i + 12], packed[start:end],
-                        f.t_capture, f.t_server_receive, f.t_solved, f.t_sent])
-            start = end
-        return out
+    @property
+    def size(self) -> int:
+        """The number of avatars."""
+        return int(self.avatar_ids.shape[0])
+
+    def frame(self, index: int) -> AvatarFrame:
+        """Avatar ``index`` of the batch (its arrays are views of the batch's)."""
+        start = int(self.joint_counts[:index].sum())
+        return self._frame(index, start)
+
+    @property
+    def frames(self) -> tuple[AvatarFrame, ...]:
+        starts = np.concatenate(([0], np.cumsum(self.joint_counts)))
+        return tuple(self._frame(i, int(starts[i])) for i in range(self.size))
+
+    def _frame(self, i: int, start: int) -> AvatarFrame:
+        # the columns were validated as a whole: the frame needs no second check
+        return AvatarFrame.model_construct(
+            avatar_id=int(self.avatar_ids[i]), seq=int(self.seqs[i]), root=self.roots[i],
+            rotations=self.rotations[start:start + int(self.joint_counts[i])],
+            t_capture=float(self.t_capture[i]),
+            t_server_receive=float(self.t_server_receive[i]),
+            t_solved=float(self.t_solved[i]), t_sent=self.t_sent)
+
+    def latencies(self, t_received: float | None = None) -> dict[str, NDArray[np.float64]]:
+        """Stage durations of every avatar (arrays, seconds); see ``stage_latencies``."""
+        t_sent = np.full(self.size, self.t_sent)  # so that every stage has a row per avatar
+        return stage_latencies(self.t_capture, self.t_server_receive, self.t_solved,
+                               t_sent, t_received)
 
     def stamped(self, t_sent: float) -> AvatarBatch:
-        """A copy with every frame's t_sent set (the server stamps just before sending)."""
-        return self.model_copy(update={"frames": tuple(
-            f.model_copy(update={"t_sent": float(t_sent)}) for f in self.frames)})
+        """A copy with t_sent set (the server stamps just before sending)."""
+        return self.model_copy(update={"t_sent": float(t_sent)})
 
 
-def _decode_together(frames: Sequence[Sequence[Any]]) -> list[dict[str, Any]]:
-    """Wire frames (arrays in FRAME_FIELDS order) -> dicts for per-frame validation.
+def avatar_batch_wire(avatar_ids: ArrayLike, seqs: ArrayLike, roots: ArrayLike,
+                      joint_counts: ArrayLike, rotations: ArrayLike, t_capture: ArrayLike,
+                      t_server_receive: ArrayLike, t_solved: ArrayLike, t_sent: float,
+                      ) -> dict[str, Any]:
+    """An AvatarBatch's wire map from its columns (for msgpack), unchecked: the
+    serializer of a validated batch, and the server's direct encoder
+    (``protocol.codec.encode_avatar_batch``), which checks its solver arrays itself."""
+    n = np.shape(avatar_ids)[0]
 
-    Checks every root and dequantizes every rotation of the batch in one call each, not
-    one per avatar. Only the clean case is handled so; otherwise the raw fields go on to
-    per-frame validation, which reports the problem with its frame index.
-    """
-    dicts = [dict(zip(FRAME_FIELDS, f, strict=True)) for f in frames]
-    roots = [f[2] for f in frames]
-    rotations = [f[3] for f in frames]
-    if not frames or not all(isinstance(r, bytes) and len(r) == 12 for r in roots) or not all(
-            isinstance(r, bytes) and 0 < len(r) <= MAX_JOINTS * BYTES_PER_ROTATION
-            and len(r) % BYTES_PER_ROTATION == 0 for r in rotations):
-        return dicts
-    root_rows = np.frombuffer(b"".join(roots), "<f4").reshape(-1, 3)
-    try:
-        check_positions(root_rows)
-        every = dequantize_rotations(b"".join(rotations))
-    except ValueError:
-        return dicts
-    _set_prechecked(dicts, readonly(root_rows.astype(np.float64)), readonly(every),
-                    [len(r) // BYTES_PER_ROTATION for r in rotations])
-    return dicts
+    def packed(column: ArrayLike, dtype: str) -> bytes:  # a scalar stands for all rows
+        array = np.asarray(column, dtype=dtype)
+        return (array if array.ndim else np.full(n, array, dtype=dtype)).tobytes()
+
+    return {"type": "avatar_batch", "avatar_ids": packed(avatar_ids, "<i8"),
+            "seqs": packed(seqs, "<i8"),
+            "roots": np.ascontiguousarray(roots, dtype="<f4").tobytes(),
+            "joint_counts": packed(joint_counts, "<u2"),
+            "rotations": quantize_rotations(rotations),
+            "t_capture": packed(t_capture, "<f8"),
+            "t_server_receive": packed(t_server_receive, "<f8"),
+            "t_solved": packed(t_solved, "<f8"), "t_sent": float(t_sent)}
 
 
-def _set_prechecked(frames: Sequence[dict[str, Any]], roots: Array, rotations: Array,
-                    counts: Sequence[int]) -> None:
-    """Give each frame dict its root and rotation rows, sliced from whole-batch arrays."""
-    start = 0
-    for i, (f, n) in enumerate(zip(frames, counts, strict=True)):
-        f["root"] = _Prechecked(roots[i])
-        f["rotations"] = _Prechecked(rotations[start:start + n])
-        start += n
+def _same_length(column: NDArray[Any], info: ValidationInfo) -> None:
+    ids = info.data.get("avatar_ids")
+    if ids is not None and column.shape[0] != ids.shape[0]:
+        raise ValueError(f"{column.shape[0]} rows for {ids.shape[0]} avatar_ids")
+
+
+def _name_avatar(message: str, counts: IntArray | None) -> str:
+    """'joint 106: why' or 'row 106 why' (a row of ``rotations``) -> 'avatar 2 (joint 0):
+    why', given the avatars' joint counts."""
+    found = re.match(r"(?:joint|row) (\d+):? (.*)", message, re.DOTALL)
+    if counts is None or found is None:
+        return message
+    row = int(found.group(1))
+    ends = np.cumsum(counts)
+    avatar = int(np.searchsorted(ends, row, side="right"))
+    if avatar >= counts.shape[0]:
+        return message
+    first = int(ends[avatar] - counts[avatar])
+    return f"avatar {avatar} (joint {row - first}): {found.group(2)}"
 
 
 # --------------------------------------------------------------------------- clock, errors

@@ -11,13 +11,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Annotated, Any
+from typing import Annotated, Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import AfterValidator, Field, Strict, ValidationError, ValidationInfo
 
 from protocol.errors import ErrorCode, ProtocolError
+
+A = TypeVar("A", bound=NDArray[Any])
 
 # --------------------------------------------------------------------------- limits
 # Any message. The largest legitimate one is a full roster: ~2.5 KB per 60-joint avatar,
@@ -91,6 +93,60 @@ def as_rows(value: Any, width: int, wire: bool, wire_dtype: str = "<f8",
     if array.ndim != 2 or array.shape[1] != width:
         raise ValueError(f"expected shape (n, {width}), got {array.shape}")
     return array
+
+
+IntArray = NDArray[np.int64]
+
+
+def int_column(value: Any, wire: bool, wire_dtype: str) -> IntArray:
+    """Packed little-endian integers, or (in Python) a 1-D array-like of ints -> an int64
+    (n,) array of values in 0..MAX_INT (a new one, or a view of the bytes)."""
+    if isinstance(value, bytes | bytearray | memoryview):
+        size = np.dtype(wire_dtype).itemsize
+        if len(value) % size:
+            raise ValueError(f"{len(value)} bytes is not a whole number of {wire_dtype} "
+                             f"({size} bytes)")
+        column = np.frombuffer(value, dtype=wire_dtype)
+        if column.dtype != np.int64:
+            column = column.astype(np.int64)
+    elif wire:
+        raise ValueError(f"expected packed {wire_dtype} bytes, got {type(value).__name__}")
+    else:
+        array = np.asarray(value)
+        if array.ndim != 1 or (array.size and array.dtype.kind not in "iu"):
+            raise ValueError(f"expected a 1-D array of integers, got {array.dtype} of "
+                             f"shape {array.shape}")
+        if array.size and array.max() > MAX_INT:
+            raise ValueError(f"integers must be within 0..{MAX_INT}")
+        column = array.astype(np.int64)  # a copy
+    if column.shape[0] and column.min() < 0:
+        row = int(np.flatnonzero(column < 0)[0])
+        raise ValueError(f"row {row} is {column[row]}; must be >= 0")
+    return column
+
+
+def time_column(value: Any, wire: bool) -> NDArray[np.float64]:
+    """Packed little-endian float64, or (in Python) a 1-D array-like -> a float64 (n,)
+    array of finite times, seconds (a new one, or a view of the bytes)."""
+    if isinstance(value, bytes | bytearray | memoryview):
+        if len(value) % 8:
+            raise ValueError(f"{len(value)} bytes is not a whole number of <f8 (8 bytes)")
+        column = np.frombuffer(value, dtype="<f8")
+    elif wire:
+        raise ValueError(f"expected packed <f8 bytes, got {type(value).__name__}")
+    else:
+        try:
+            column = np.array(value, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"expected an array of numbers: {exc}") from None
+        if column.ndim != 1:
+            raise ValueError(f"expected a 1-D array of times, got shape {column.shape}")
+    # one pass: the sum is finite when every time is (unless huge ones overflow it,
+    # which the exact check below then clears)
+    if not np.isfinite(column.sum()) and not np.isfinite(column).all():
+        row = int(np.flatnonzero(~np.isfinite(column))[0])
+        raise ValueError(f"row {row} is {float(column[row])!r}: times must be finite")
+    return column
 
 
 _MAX_POSITION2 = MAX_POSITION_M**2
@@ -172,7 +228,7 @@ def _label(labels: Sequence[str] | None, row: int) -> str:
     return f" ({labels[row]})" if labels is not None and row < len(labels) else ""
 
 
-def readonly(array: NDArray[np.float64]) -> NDArray[np.float64]:
+def readonly(array: A) -> A:
     array.flags.writeable = False
     return array
 

@@ -49,7 +49,7 @@ class SharedBatch:
     def frame(self, index: int) -> AvatarFrame:
         if self._batch is None:
             self._batch = AvatarBatch.from_arrays(*self.args, t_sent=self.args[-1])
-        return self._batch.frames[index]
+        return self._batch.frame(index)
 
 
 Delivery = tuple[SharedBatch, int]  # a batch and the index of one avatar in it
@@ -207,7 +207,7 @@ async def send_deliveries(send_bytes: Callable[[bytes], Awaitable[None]],
     if all(d[0] is first for d in deliveries) and len(deliveries) == first.size:
         await send_bytes(first.encoded())
         return
-    batch = AvatarBatch(frames=tuple(b.frame(i) for b, i in deliveries)).stamped(now())
+    batch = AvatarBatch.from_frames([b.frame(i) for b, i in deliveries], t_sent=now())
     await send_bytes(encode(batch))
 
 

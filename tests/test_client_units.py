@@ -243,11 +243,13 @@ def _info(avatar_id: int) -> AvatarInfo:
 def test_spectator_records_batches_on_the_server_clock() -> None:
     spec = Spectator("ws://x", "room", "viewer")
     clock = ClockEstimator()
-    spec.on_batch(AvatarBatch(frames=(_frame(1, 0, 200.0),)), 100.002, clock)
+    spec.on_batch(AvatarBatch.from_frames([_frame(1, 0, 200.0)], t_sent=200.0015), 100.002,
+                  clock)
     # not synced yet: only the stages that need no local clock
     assert set(spec.stats.latency.stages) == {"capture_to_server", "solve", "server"}
     clock.add(0.0, OFFSET, OFFSET, 0.0)  # a zero-RTT exchange: offset exactly 100
-    batch = decode(encode(AvatarBatch(frames=(_frame(1, 1, 200.0), _frame(2, 7, 200.0)))))
+    batch = decode(encode(AvatarBatch.from_frames([_frame(1, 1, 200.0), _frame(2, 7, 200.0)],
+                                                 t_sent=200.0015)))
     assert isinstance(batch, AvatarBatch)
     spec.on_batch(batch, 100.003, clock)  # received at 200.003 server time
     lat = spec.stats.latency
@@ -266,7 +268,8 @@ def test_spectator_roster_adds_updates_and_removes() -> None:
     spec = Spectator("ws://x", "room", "viewer", max_rate_hz=30.0)
     assert spec.hello.max_rate_hz == 30.0 and spec.hello.role == "spectator"
     spec.on_roster(AvatarRoster(avatars=(_info(1), _info(2))))
-    spec.on_batch(AvatarBatch(frames=(_frame(2, 0, 1.0),)), 0.0, ClockEstimator())
+    spec.on_batch(AvatarBatch.from_frames([_frame(2, 0, 1.0)], t_sent=1.0015), 0.0,
+                  ClockEstimator())
     spec.on_roster(AvatarRoster(avatars=(_info(1),), removed=(2,)))
     assert sorted(spec.roster) == [1] and 2 not in spec.latest
     assert spec.stats.frames_per_avatar[2] == 1  # counts outlive the avatar

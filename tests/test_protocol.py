@@ -3,6 +3,7 @@ rejected with a ProtocolError whose message names the field and the value."""
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import msgpack
@@ -16,7 +17,6 @@ from pydantic import BaseModel
 from protocol import (
     CALIBRATION_ROLES,
     DEVICE_ROLES,
-    FRAME_FIELDS,
     MAX_ANGLE_ERROR_DEG,
     MAX_CLIENT_MESSAGE_BYTES,
     MAX_JOINTS,
@@ -42,6 +42,7 @@ from protocol import (
     rotation_angle,
 )
 from protocol.measure import sample_avatar_batch, sample_tracker_frame
+from protocol.validation import MAX_AVATARS
 from solver.motion import DRIVING_DEVICES, VIVE_DEVICES
 
 RNG = np.random.default_rng(7)
@@ -94,10 +95,6 @@ def test_every_message_type_is_registered_once() -> None:
     assert sorted(MESSAGE_TYPES) == ["avatar_batch", "avatar_roster", "calibrate", "error",
                                      "hello", "leave", "ping", "pong", "tracker_frame",
                                      "welcome"]
-
-
-def test_frame_fields_follow_the_model() -> None:
-    assert tuple(AvatarFrame.model_fields) == FRAME_FIELDS
 
 
 # --------------------------------------------------------------------------- round trips
@@ -174,17 +171,21 @@ def test_roster_round_trips_the_real_makehuman_skeleton() -> None:
     assert back.avatars[1].joint_names == ("root", "spine", "head")
 
 
+def _frames() -> list[AvatarFrame]:
+    """Three avatars of different skeletons, as the viewer would compare them."""
+    return [AvatarFrame(avatar_id=avatar_id, seq=avatar_id * 100, root=RNG.uniform(-3, 3, 3),
+                        rotations=unit_quaternions(joints), t_capture=1.0 + avatar_id,
+                        t_server_receive=1.001 + avatar_id, t_solved=1.0012 + avatar_id,
+                        t_sent=1.0013)
+            for avatar_id, joints in ((5, 53), (6, 3), (9, 60))]
+
+
 def test_avatar_batch_round_trips_within_quantization() -> None:
-    frames = []
-    for avatar_id, joints in ((5, 53), (6, 3), (9, 60)):
-        frames.append(AvatarFrame(
-            avatar_id=avatar_id, seq=avatar_id * 100, root=RNG.uniform(-3, 3, 3),
-            rotations=unit_quaternions(joints), t_capture=1.0, t_server_receive=1.001,
-            t_solved=1.0012, t_sent=1.0013))
-    batch = AvatarBatch(frames=tuple(frames))
+    frames = _frames()
+    batch = AvatarBatch.from_frames(frames, t_sent=1.0013)
     back = decode(encode(batch))
     assert isinstance(back, AvatarBatch)
-    assert len(back.frames) == 3
+    assert back.size == 3 and back.joint_counts.tolist() == [53, 3, 60]
     for got, sent in zip(back.frames, frames, strict=True):
         assert (got.avatar_id, got.seq, got.t_capture, got.t_server_receive, got.t_solved,
                 got.t_sent) == (sent.avatar_id, sent.seq, sent.t_capture,
@@ -195,11 +196,22 @@ def test_avatar_batch_round_trips_within_quantization() -> None:
         # the root travels as float32: within one float32 step at a few metres
         np.testing.assert_allclose(got.root, sent.root, rtol=0, atol=3 * 2.0**-22)
         np.testing.assert_array_equal(got.root, sent.root.astype(np.float32))
+    # frame(i) alone gives what frames gives, from its own slice of the columns
+    assert back.frame(2) == back.frames[2] and back.frame(0) == back.frames[0]
+
+
+def test_batch_arrays_are_read_only() -> None:
+    batch = decode(encode(AvatarBatch.from_frames(_frames(), t_sent=2.0)))
+    assert isinstance(batch, AvatarBatch)
+    for array in (batch.avatar_ids, batch.roots, batch.rotations, batch.t_capture,
+                  batch.frame(1).rotations):
+        with pytest.raises(ValueError, match="read-only"):
+            array[0] = 0
 
 
 def test_empty_batch_round_trips() -> None:
-    back = decode(encode(AvatarBatch(frames=())))
-    assert isinstance(back, AvatarBatch) and back.frames == ()
+    back = decode(encode(AvatarBatch.from_frames([], t_sent=1.0)))
+    assert isinstance(back, AvatarBatch) and back.size == 0 and back.frames == ()
 
 
 def test_from_arrays_matches_frame_by_frame() -> None:
@@ -207,30 +219,40 @@ def test_from_arrays_matches_frame_by_frame() -> None:
     rotations = unit_quaternions(4 * 53).reshape(4, 53, 4) * 1.0005  # normalised on entry
     batch = AvatarBatch.from_arrays([10, 11, 12, 13], [1, 2, 3, 4], roots, rotations,
                                     [0.1] * 4, [0.2] * 4, t_solved=0.3, t_sent=0.4)
-    for i, frame in enumerate(batch.frames):
-        alone = AvatarFrame(avatar_id=10 + i, seq=i + 1, root=roots[i], rotations=rotations[i],
-                            t_capture=0.1, t_server_receive=0.2, t_solved=0.3, t_sent=0.4)
-        assert frame.avatar_id == alone.avatar_id and frame.seq == alone.seq
-        np.testing.assert_array_equal(frame.root, alone.root)
-        np.testing.assert_allclose(frame.rotations, alone.rotations, rtol=0, atol=1e-15)
+    alone = [AvatarFrame(avatar_id=10 + i, seq=i + 1, root=roots[i], rotations=rotations[i],
+                         t_capture=0.1, t_server_receive=0.2, t_solved=0.3, t_sent=0.4)
+             for i in range(4)]
+    for frame, one in zip(batch.frames, alone, strict=True):
+        assert frame.avatar_id == one.avatar_id and frame.seq == one.seq
+        np.testing.assert_array_equal(frame.root, one.root)
+        np.testing.assert_allclose(frame.rotations, one.rotations, rtol=0, atol=1e-15)
         np.testing.assert_allclose(np.linalg.norm(frame.rotations, axis=1), 1.0, atol=1e-15)
-    assert encode(batch) == encode(AvatarBatch(frames=tuple(
-        AvatarFrame(avatar_id=10 + i, seq=i + 1, root=roots[i], rotations=rotations[i],
-                    t_capture=0.1, t_server_receive=0.2, t_solved=0.3, t_sent=0.4)
-        for i in range(4))))
+    assert encode(batch) == encode(AvatarBatch.from_frames(alone, t_sent=0.4))
 
 
 def test_from_arrays_rejects_mismatched_inputs_and_bad_rotations() -> None:
-    with pytest.raises(ValueError, match="2 avatar_ids but 1 seqs"):
+    with pytest.raises(ValueError, match=r"(?s)seqs.*1 rows for 2 avatar_ids"):
         AvatarBatch.from_arrays([1, 2], [1], np.zeros((2, 3)), unit_quaternions(6).reshape(2, 3, 4),
                                 [0.0] * 2, [0.0] * 2, 0.0, 0.0)
-    with pytest.raises(ValueError, match=r"shape \(2, 2, 3\); \(B, J, 4\) expected"):
+    with pytest.raises(ValueError, match=r"(?s)rotations.*expected shape \(n, 4\), got \(4, 3\)"):
         AvatarBatch.from_arrays([1, 2], [1, 1], np.zeros((2, 3)), np.ones((2, 2, 3)),
                                 [0.0] * 2, [0.0] * 2, 0.0, 0.0)
     bad = unit_quaternions(6).reshape(2, 3, 4)
     bad[1, 2] *= 2.0
-    with pytest.raises(ValueError, match=r"row 5 quaternion .* has norm 2"):
+    with pytest.raises(ValueError, match=r"avatar 1 \(joint 2\): quaternion .* has norm 2"):
         AvatarBatch.from_arrays([1, 2], [1, 1], np.zeros((2, 3)), bad, [0.0] * 2, [0.0] * 2,
+                                0.0, 0.0)
+    with pytest.raises(ValueError, match="avatar_id 4 appears more than once"):
+        AvatarBatch.from_arrays([4, 4], [1, 1], np.zeros((2, 3)),
+                                unit_quaternions(6).reshape(2, 3, 4), [0.0] * 2, [0.0] * 2,
+                                0.0, 0.0)
+    with pytest.raises(ValueError, match=r"(?s)t_capture.*row 1 is nan"):
+        AvatarBatch.from_arrays([1, 2], [1, 1], np.zeros((2, 3)),
+                                unit_quaternions(6).reshape(2, 3, 4), [0.0, math.nan],
+                                [0.0] * 2, 0.0, 0.0)
+    with pytest.raises(ValueError, match=r"(?s)avatar_ids.*integers"):
+        AvatarBatch.from_arrays([1.5, 2], [1, 1], np.zeros((2, 3)),  # type: ignore[list-item]
+                                unit_quaternions(6).reshape(2, 3, 4), [0.0] * 2, [0.0] * 2,
                                 0.0, 0.0)
 
 
@@ -249,6 +271,16 @@ def test_stamped_sets_t_sent_on_every_frame() -> None:
     batch = sample_avatar_batch(3, 5).stamped(42.5)
     assert [f.t_sent for f in batch.frames] == [42.5] * 3
     assert [f.t_sent for f in decode(encode(batch)).frames] == [42.5] * 3  # type: ignore[union-attr]
+
+
+def test_batch_latencies_equal_each_frames() -> None:
+    batch = AvatarBatch.from_frames(_frames(), t_sent=20.0)
+    got = batch.latencies(t_received=20.5)
+    for i, frame in enumerate(batch.frames):
+        one = frame.latencies(t_received=20.5)
+        assert set(got) == set(one)
+        for stage, seconds in one.items():
+            assert got[stage][i] == pytest.approx(seconds, abs=1e-12)
 
 
 def test_latencies_name_the_design_stages() -> None:
@@ -449,36 +481,45 @@ def test_skeleton_checks() -> None:
             client=False)
 
 
-def test_avatar_batch_checks_name_the_frame() -> None:
+def test_avatar_batch_checks_name_the_column_and_avatar() -> None:
     batch = wire(sample_avatar_batch(3, 4))
-    frames = batch["frames"]
 
-    def with_frame(i: int, frame: Any) -> bytes:
-        return msgpack.packb({**batch, "frames": [*frames[:i], frame, *frames[i + 1:]]})
+    def changed(**change: Any) -> bytes:
+        return msgpack.packb({**batch, **change})
 
-    rejects(with_frame(1, frames[1][:7]), "avatar_batch", "frames[1]",
-            "expected an array of the 8 fields", "got 7 items", client=False)
-    rejects(with_frame(2, {"avatar_id": 1}), "frames[2]", "got dict", client=False)
-    spare = bytearray(frames[2][3])
-    spare[4] |= 0x40  # bit 38
-    rejects(with_frame(2, [*frames[2][:3], bytes(spare), *frames[2][4:]]),
-            "avatar_batch.frames[2].rotations", "joint 0: unused bits 38-39", client=False)
-    big = bytes([0, 0, 0, 0, 0])  # three components at -1/sqrt(2): squares sum to 1.5
-    rejects(with_frame(0, [*frames[0][:3], big, *frames[0][4:]]),
-            "avatar_batch.frames[0].rotations", "joint 0", "1.5000 > 0.75", client=False)
-    rejects(with_frame(1, [*frames[1][:3], b"\x00" * 7, *frames[1][4:]]),
-            "avatar_batch.frames[1].rotations", "7 bytes", client=False)
-    # the last 3 bytes of frame 1 moved to the start of frame 2: joined, the rotations are
-    # the same valid 60 bytes, but they do not split into frames of whole rotations
-    moved = [list(f) for f in frames]
-    moved[1][3], moved[2][3] = frames[1][3][:-3], frames[1][3][-3:] + frames[2][3]
-    rejects(msgpack.packb({**batch, "frames": moved}), "avatar_batch.frames[1].rotations",
-            "17 bytes is not a multiple of 5", client=False)
-    nan_root = np.array([np.nan, 0, 0], "<f4").tobytes()
-    rejects(with_frame(1, [*frames[1][:2], nan_root, *frames[1][3:]]),
-            "avatar_batch.frames[1].root", "position[0] is nan", client=False)
-    rejects(with_frame(1, [frames[0][0], *frames[1][1:]]), "avatar_id 0 appears more than once",
+    rotations = bytearray(batch["rotations"])
+    spare = bytearray(rotations)
+    spare[5 * 9 + 4] |= 0x40  # bit 38 of row 9: avatar 2, joint 1
+    rejects(changed(rotations=bytes(spare)), "avatar_batch.rotations",
+            "avatar 2 (joint 1): unused bits 38-39", client=False)
+    big = bytearray(rotations)
+    big[0:5] = bytes(5)  # three components at -1/sqrt(2): squares sum to 1.5
+    rejects(changed(rotations=bytes(big)), "avatar_batch.rotations", "avatar 0 (joint 0)",
+            "1.5000 > 0.75", client=False)
+    rejects(changed(rotations=bytes(rotations[:-3])), "avatar_batch.rotations",
+            "57 bytes is not a multiple of 5", client=False)
+    rejects(changed(rotations=bytes(rotations[:-5])), "avatar_batch.rotations",
+            "11 rotations for joint_counts summing to 12", client=False)
+    rejects(changed(joint_counts=np.array([4, 0, 8], "<u2").tobytes()),
+            "avatar_batch.joint_counts", "avatar 1 has 0 joints", client=False)
+    rejects(changed(joint_counts=np.array([4, 4], "<u2").tobytes()),
+            "avatar_batch.joint_counts", "2 rows for 3 avatar_ids", client=False)
+    nan_root = np.array([[0, 0, 0], [np.nan, 0, 0], [0, 0, 0]], "<f4").tobytes()
+    rejects(changed(roots=nan_root), "avatar_batch.roots", "row 1 position[0] is nan",
             client=False)
+    rejects(changed(avatar_ids=np.array([0, 1, 0], "<i8").tobytes()), "avatar_batch.avatar_ids",
+            "avatar_id 0 appears more than once", client=False)
+    rejects(changed(seqs=np.array([1, -2, 3], "<i8").tobytes()), "avatar_batch.seqs",
+            "row 1 is -2; must be >= 0", client=False)
+    rejects(changed(t_solved=np.array([1.0, 2.0, np.inf]).tobytes()), "avatar_batch.t_solved",
+            "row 2 is inf", client=False)
+    rejects(changed(t_capture=[1.0, 2.0, 3.0]), "avatar_batch.t_capture",
+            "expected packed <f8 bytes, got list", client=False)
+    rejects(changed(avatar_ids=b"\x00" * 7), "avatar_batch.avatar_ids",
+            "7 bytes is not a whole number of <i8", client=False)
+    too_many = np.arange(MAX_AVATARS + 1, dtype="<i8").tobytes()
+    rejects(changed(avatar_ids=too_many), "avatar_batch.avatar_ids",
+            f"{MAX_AVATARS + 1} avatars; at most {MAX_AVATARS}", client=False)
 
 
 def test_pong_times_must_be_ordered() -> None:

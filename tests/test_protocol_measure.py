@@ -15,9 +15,10 @@ from protocol.measure import (
     tracker_frame_bytes,
 )
 
-# one frame inside a batch: fixarray header 1, avatar_id 1, seq 3 (uint16), root bin 2 + 12,
-# rotations bin16 header 3, four float64 times 4 x 9
-FRAME_OVERHEAD = 1 + 1 + 3 + 14 + 3 + 36
+# one avatar in a batch (a row of each column): avatar_id and seq int64 (16), root
+# 3 x float32 (12), joint count uint16 (2), three float64 times (24). Column headers are
+# per batch; the rotations column's grows from 2 to 3 bytes (bin16) past 255 bytes.
+FRAME_OVERHEAD = 16 + 12 + 2 + 24
 
 
 def test_makehuman_joint_count_matches_the_shipped_rig() -> None:
@@ -28,15 +29,16 @@ def test_makehuman_joint_count_matches_the_shipped_rig() -> None:
 
 @pytest.mark.parametrize("joints", [53, 60, 100])
 def test_bytes_per_avatar_frame(joints: int) -> None:
-    assert bytes_per_avatar_frame(joints, avatars=1) == FRAME_OVERHEAD + BYTES_PER_ROTATION * joints
-    # in a batch of 16 the list header grows by 2 bytes, shared by 16 avatars
+    rotations = BYTES_PER_ROTATION * joints
+    assert bytes_per_avatar_frame(joints, avatars=1) == FRAME_OVERHEAD + rotations + 1
+    # in a batch of 16 that one header byte is shared by 16 avatars
     assert bytes_per_avatar_frame(joints, avatars=16) == pytest.approx(
-        FRAME_OVERHEAD + BYTES_PER_ROTATION * joints + 2 / 16)
+        FRAME_OVERHEAD + rotations + 1 / 16)
 
 
 def test_quantized_frame_is_far_smaller_than_float32() -> None:
-    # 53 joints: 323 bytes against 53 * 16 = 848 bytes of float32 quaternions alone
-    assert bytes_per_avatar_frame(53, avatars=1) == 323
+    # 53 joints: 320 bytes against 53 * 16 = 848 bytes of float32 quaternions alone
+    assert bytes_per_avatar_frame(53, avatars=1) == 320
     assert bytes_per_avatar_frame(53, avatars=1) < 0.4 * 53 * 16
 
 

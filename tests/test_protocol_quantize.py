@@ -129,3 +129,27 @@ def test_rotation_angle_is_precise_for_small_angles() -> None:
     assert float(rotation_angle(q, [0, 0, 0, 1.0])) == pytest.approx(angle, rel=1e-9)
     assert float(rotation_angle(-q, [0, 0, 0, 1.0])) == pytest.approx(angle, rel=1e-9)
     assert float(rotation_angle([1.0, 0, 0, 0], [0, 0, 0, 1.0])) == pytest.approx(math.pi)
+
+
+def _reference_word(q: NDArray[np.float64]) -> int:
+    """The format of the module docstring, read literally, one rotation in plain Python."""
+    largest = max(range(4), key=lambda i: (abs(q[i]), -i))  # the first of equal magnitudes
+    scale = (-1.0 if q[largest] < 0 else 1.0) / math.sqrt(sum(c * c for c in q))
+    word = largest << 36
+    for shift, i in zip((24, 12, 0), [i for i in range(4) if i != largest], strict=True):
+        c = q[i] * scale  # normalised, the dropped component made positive
+        k = min(max(math.floor(c * (2047 / (1 / math.sqrt(2))) + 0.5), -2047), 2047) + 2047
+        word |= k << shift
+    return word
+
+
+def test_compiled_kernel_matches_the_format_read_literally() -> None:
+    rng = np.random.default_rng(11)
+    q = rng.normal(size=(500, 4))
+    q[:50, 1] = 0.0  # zeros and ties of magnitude
+    q[50:60] = [0.5, -0.5, 0.5, -0.5]
+    data = quantize_rotations(q)
+    for j, row in enumerate(q):
+        chunk = data[j * BYTES_PER_ROTATION:(j + 1) * BYTES_PER_ROTATION]
+        assert int.from_bytes(chunk, "little") == _reference_word(row)
+    assert np.array_equal(dequantize_rotations(data)[:50, 1], np.zeros(50))
