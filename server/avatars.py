@@ -99,24 +99,21 @@ class AvatarSolver:
         self.calibrations.pop(avatar_id, None)
         self._slot.pop(avatar_id, None)
 
-    def solve(self, frames: list[tuple[int, tuple[str, ...], Array, Array]]) -> PoseBatch:
-        """Solve the avatars of ``frames`` [(avatar id, roles, positions (D, 3), rotations
-        (D, 4))] as one batch, each warm-started from its last pose; their new poses in
-        the order asked."""
+    def solve(self, frames: list[tuple[int, tuple[str, ...], Array]]) -> PoseBatch:
+        """Solve the avatars of ``frames`` [(avatar id, roles, poses (D, 7): position |
+        quaternion)] as one batch, each warm-started from its last pose; their new poses
+        in the order asked."""
         B = len(frames)
-        device = np.empty((B, len(EFFECTORS), 7))
         slots = np.empty(B, dtype=np.intp)
-        for b, (avatar_id, roles, positions, rotations) in enumerate(frames):
+        for b, (avatar_id, _, _) in enumerate(frames):
             slot = self._slot.get(avatar_id)
             if slot is None:
                 raise NotCalibratedError(f"avatar {avatar_id} has not been calibrated: "
                                          "send a calibrate message (T-pose) first")
-            idx = driving_indices(roles)
-            device[b, :, :3] = positions[idx]
-            device[b, :, 3:] = rotations[idx]
             slots[b] = slot
-        targets = np.empty_like(device)
+        device = self._driving_poses(frames)
         E = len(EFFECTORS)
+        targets = np.empty((B, E, 7))  # C order: the kernel writes through reshape views
         bone_targets(device.reshape(B * E, 7), self._mount_p[slots].reshape(B * E, 3),
                      self._mount_q[slots].reshape(B * E, 4), targets.reshape(B * E, 7))
         state = PoseBatch(self._rotations[slots], self._roots[slots])
@@ -124,3 +121,14 @@ class AvatarSolver:
         self._rotations[slots] = state.rotations
         self._roots[slots] = state.root
         return state
+
+    @staticmethod
+    def _driving_poses(frames: list[tuple[int, tuple[str, ...], Array]]) -> Array:
+        """(B, E, 7) poses of the driving devices; one gather when every frame has the
+        same roles in the same order (as a room of the same client software sends)."""
+        roles = frames[0][1]
+        if all(f[1] == roles for f in frames):
+            gathered = np.stack([f[2] for f in frames])[:, driving_indices(roles)]
+        else:
+            gathered = np.stack([poses[driving_indices(r)] for _, r, poses in frames])
+        return np.ascontiguousarray(gathered)  # reshaped below: must be a view, not a copy

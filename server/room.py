@@ -154,8 +154,7 @@ class Room:
         self._pending.clear()
         if not pending:
             return
-        solved = self.solver.solve([(a, f.roles, f.positions, f.rotations)
-                                    for a, f, _ in pending])
+        solved = self.solver.solve([(a, f.roles, f.poses) for a, f, _ in pending])
         t_solved = now()
         shared = SharedBatch([a for a, _, _ in pending], [f.seq for _, f, _ in pending],
                              solved.root, solved.rotations,

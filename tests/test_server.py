@@ -30,6 +30,7 @@ from protocol import (
     rotation_angle,
 )
 from server.app import Session
+from server.avatars import AvatarSolver
 from server.outbox import Outbox
 from solver.calibration import calibrate
 from solver.ik import PoseBatch, Solver
@@ -96,6 +97,27 @@ def tracker(rec: ViveRecording, frame: int) -> bytes:
 def calibration(rec: ViveRecording) -> bytes:
     return encode(Calibrate(roles=rec.devices, poses=poses(rec, 0), t_capture=0.0,
                             clock_offset=0.0))
+
+
+def test_one_batch_of_avatars_equals_each_solved_alone(session: Session,
+                                                      recording: ViveRecording) -> None:
+    rec, n = recording, 5
+    batched, alone = AvatarSolver(session.rig), AvatarSolver(session.rig)
+    for solver in (batched, alone):
+        for a in range(n):  # each avatar calibrated on its own T-pose row
+            solver.calibrate(a, rec.devices, rec.positions[0], rec.rotations[0])
+    reordered = tuple(reversed(rec.devices))
+    for f in range(1, 7):
+        frames = [(a, rec.devices, poses(rec, f + 20 * a)) for a in range(n)]
+        if f % 2:  # one client sends its roles in another order
+            frames[3] = (3, reordered, poses(rec, f + 60)[::-1])
+        together = batched.solve(frames)
+        for b, frame in enumerate(frames):
+            one = alone.solve([frame])
+            np.testing.assert_array_equal(together.rotations[b], one.rotations[0])
+            np.testing.assert_array_equal(together.root[b], one.root[0])
+        # and the batch moved: five different poses, not one pose five times
+        assert np.abs(together.rotations[0] - together.rotations[1]).max() > 1e-3
 
 
 def test_spectator_receives_the_offline_solution(session: Session,
