@@ -6,7 +6,9 @@ is up, ``stop`` is set or the task is cancelled; it then sends Leave. Error repl
 the server are logged and counted, not fatal: the next frame may well be fine.
 
 The message builders (``device_poses``, ``calibrate_message``, ``tracker_frame``) are pure,
-so tests check them without a server.
+so tests check them without a server. Frames go out through ``encode_tracker_frame``, the
+same bytes as ``encode(tracker_frame(...))`` without building the model: the capture's
+way to the socket stays short.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from protocol import (
     Error,
     ProtocolError,
     TrackerFrame,
+    encode_tracker_frame,
 )
 
 log = logging.getLogger(__name__)
@@ -220,7 +223,9 @@ class Player:
             if t_first is None:
                 t_first = sample.t_capture
                 deadline = t_first + seconds if seconds is not None else math.inf
-            await session.send(tracker_frame(self._seq, sample, session.clock.offset))
+            await session.send_encoded(encode_tracker_frame(
+                self._seq, sample.roles, device_poses(sample), sample.t_capture,
+                session.clock.offset))
             self._seq += 1
             self.stats.frames_sent += 1
             self.stats.seconds = sample.t_capture - t_first

@@ -13,7 +13,7 @@ validated messages and back; server/ and client/ own the sockets. Modules:
 """
 
 from protocol.clock import ClockEstimator, ClockSample, clock_sample
-from protocol.codec import decode, decode_client, encode
+from protocol.codec import decode, decode_client, encode, encode_tracker_frame
 from protocol.errors import ErrorCode, ProtocolError
 from protocol.messages import (
     CLIENT_MESSAGES,
@@ -56,5 +56,5 @@ __all__ = [
     "ClockEstimator", "ClockSample", "DeviceRole", "Error", "ErrorCode", "Hello", "Leave",
     "Message", "Ping", "Pong", "ProtocolError", "ServerMessage", "TrackerFrame", "Welcome",
     "clock_sample", "decode", "decode_client", "dequantize_rotations", "encode",
-    "quantize_rotations", "rotation_angle",
+    "encode_tracker_frame", "quantize_rotations", "rotation_angle",
 ]

@@ -23,6 +23,7 @@ from protocol.messages import (
     MESSAGE_TYPES,
     ClientMessage,
     Message,
+    TrackerFrame,
     avatar_batch_wire,
 )
 from protocol.validation import MAX_CLIENT_MESSAGE_BYTES, MAX_MESSAGE_BYTES, protocol_error
@@ -106,3 +107,20 @@ def encode_avatar_batch(avatar_ids: Sequence[int], seqs: Sequence[int], roots: N
     wire = avatar_batch_wire(avatar_ids, seqs, roots, rotations.shape[1], rotations,
                              t_capture, t_server_receive, t_solved, t_sent)
     return msgpack.packb(wire, use_bin_type=True)
+
+
+def encode_tracker_frame(seq: int, roles: Sequence[str], poses: NDArray[Any],
+                         t_capture: float, clock_offset: float) -> bytes:
+    """A TrackerFrame's bytes straight from a player's arrays: the same bytes as
+    ``encode(TrackerFrame(...))`` (a test holds them equal) at a fifth of the cost, for a
+    player's send path (its capture-to-send time). The server validates every frame in
+    full; here a NaN or infinity is caught by building the message, which names the
+    device, and other mistakes come back as the server's Error.
+    """
+    poses = np.asarray(poses, dtype="<f8")
+    if poses.shape != (len(roles), 7) or not np.isfinite(poses).all():
+        return encode(TrackerFrame(seq=seq, roles=tuple(roles), poses=poses,  # type: ignore[arg-type]
+                                   t_capture=t_capture, clock_offset=clock_offset))
+    return msgpack.packb({"roles": list(roles), "poses": poses.tobytes(),
+                          "t_capture": float(t_capture), "clock_offset": float(clock_offset),
+                          "type": "tracker_frame", "seq": int(seq)}, use_bin_type=True)

@@ -33,6 +33,7 @@ from protocol import (
     TrackerFrame,
     decode,
     encode,
+    encode_tracker_frame,
 )
 
 
@@ -221,6 +222,16 @@ def test_a_bad_sample_is_refused_by_the_message() -> None:
     s.positions[2, 1] = np.nan
     with pytest.raises(ValueError, match="left_hand"):
         tracker_frame(0, s, 0.0)
+    with pytest.raises(ValueError, match="left_hand"):  # the player's direct encoder too
+        encode_tracker_frame(0, s.roles, device_poses(s), s.t_capture, 0.0)
+
+
+def test_direct_tracker_encoder_gives_the_model_bytes() -> None:
+    for seed, roles in ((4, ROLES), (5, (*ROLES, "left_knee", "right_forearm"))):
+        s = _sample(seed, roles)
+        assert encode_tracker_frame(2**40 + seed, s.roles, device_poses(s), s.t_capture,
+                                    -1.5e-3) == encode(tracker_frame(2**40 + seed, s,
+                                                                     -1.5e-3))
 
 
 # --------------------------------------------------------------------------- spectator
