@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, types
 from numpy.typing import ArrayLike, NDArray
 
 BYTES_PER_ROTATION = 5
@@ -44,8 +44,11 @@ _MAX_KEPT_SQUARES = 0.75 + 1e-3
 
 # Compiled (numba): a batch of 16 avatars has ~850 rotations; numpy needed ~60 us each
 # way for them (a dozen whole-array passes), a single compiled pass takes a few, and the
-# server encodes and every spectator decodes each batch.
-@njit(cache=True)
+# server encodes and every spectator decodes each batch. Explicit signatures compile (or
+# load from the cache) at import, not at the first frame: a first-call compile would stall
+# a spectator's first ~100 ms of frames.
+@njit(types.void(types.Array(types.float64, 2, "C", readonly=True), types.uint8[::1]),
+      cache=True)
 def _quantize(q: NDArray[np.float64], out: NDArray[np.uint8]) -> None:
     for j in range(q.shape[0]):
         largest = 0
@@ -69,7 +72,8 @@ def _quantize(q: NDArray[np.float64], out: NDArray[np.uint8]) -> None:
             out[j * BYTES_PER_ROTATION + b] = (word >> (8 * b)) & 0xFF
 
 
-@njit(cache=True)
+@njit(types.Tuple((types.int64, types.int64, types.float64))(
+    types.Array(types.uint8, 1, "C", readonly=True), types.float64[:, ::1]), cache=True)
 def _dequantize(data: NDArray[np.uint8], out: NDArray[np.float64]
                 ) -> tuple[int, int, float]:
     """Fills out; returns (0, -1, 0), or (1, joint, 0) for set spare bits, or

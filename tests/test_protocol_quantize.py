@@ -105,6 +105,11 @@ def test_batch_equals_one_by_one() -> None:
     assert quantize_rotations(q) == b"".join(quantize_rotations(row) for row in q)
     assert quantize_rotations(np.zeros((0, 4))) == b""
     assert dequantize_rotations(b"").shape == (0, 4)
+    # what arrives: read-only arrays (a decoded message's) and any bytes-like buffer
+    q.flags.writeable = False
+    data = quantize_rotations(q)
+    for buffer in (data, bytearray(data), memoryview(data)):
+        np.testing.assert_array_equal(dequantize_rotations(buffer), dequantize_rotations(data))
 
 
 def test_unnormalised_input_is_normalised_first() -> None:
