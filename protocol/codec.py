@@ -21,9 +21,11 @@ from protocol.errors import ErrorCode, ProtocolError
 from protocol.messages import (
     CLIENT_MESSAGES,
     MESSAGE_TYPES,
+    AvatarBatch,
     ClientMessage,
     Message,
     TrackerFrame,
+    avatar_batch_from_wire,
     avatar_batch_wire,
 )
 from protocol.validation import MAX_CLIENT_MESSAGE_BYTES, MAX_MESSAGE_BYTES, protocol_error
@@ -74,6 +76,10 @@ def _decode(data: Any, max_bytes: int, allowed: frozenset[str] | None) -> BaseMo
         raise ProtocolError(ErrorCode.UNKNOWN_TYPE,
                             f"type: unknown message type {_short(kind)}; expected one of "
                             f"{', '.join(known)}")
+    if cls is AvatarBatch:  # the hot path of every viewer: checked whole when well-formed
+        batch = avatar_batch_from_wire(obj)
+        if batch is not None:
+            return batch
     try:
         return cls.model_validate(obj, context=_WIRE)
     except ValidationError as exc:

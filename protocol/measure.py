@@ -65,7 +65,7 @@ def sample_avatar_batch(avatars: int, num_joints: int = MAKEHUMAN_JOINTS,
     return AvatarBatch.from_arrays(
         avatar_ids=list(range(avatars)), seqs=[1000 + i for i in range(avatars)],
         roots=rng.uniform(-2.0, 2.0, (avatars, 3)),
-        rotations=_unit_quaternions(rng, avatars * num_joints).reshape(avatars, -1, 4),
+        rotations=_unit_quaternions(rng, avatars * num_joints).reshape(avatars, num_joints, 4),
         t_capture=[now] * avatars, t_server_receive=[now + 1e-3] * avatars,
         t_solved=now + 1.2e-3, t_sent=now + 1.3e-3)
 

@@ -23,6 +23,7 @@ log the client's offset (a jump in it shows up), and costs 9 bytes.
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Sequence
 from typing import Annotated, Any, Literal
@@ -57,6 +58,7 @@ from protocol.validation import (
     Time,
     Token,
     as_rows,
+    batch_columns_ok,
     check_positions,
     device_poses,
     int_column,
@@ -484,6 +486,50 @@ class AvatarBatch(_Model):
     def stamped(self, t_sent: float) -> AvatarBatch:
         """A copy with t_sent set (the server stamps just before sending)."""
         return self.model_copy(update={"t_sent": float(t_sent)})
+
+
+_BATCH_FIELDS = frozenset(AvatarBatch.model_fields)
+# bytes per avatar of each packed column (rotations: 5 per joint, checked apart)
+_ROW_BYTES = {"avatar_ids": 8, "seqs": 8, "roots": 12, "joint_counts": 2, "t_capture": 8,
+              "t_server_receive": 8, "t_solved": 8}
+
+
+def avatar_batch_from_wire(obj: dict[str, Any]) -> AvatarBatch | None:
+    """The wire form of a well-formed AvatarBatch checked whole, in one compiled pass
+    (~2x faster than field-by-field validation: every spectator decodes every batch), or
+    None when anything is unusual; ``AvatarBatch.model_validate`` then says what. It
+    accepts only what the model's own validation accepts, with the same result: a
+    property test holds the two equal.
+    """
+    if obj.keys() != _BATCH_FIELDS or obj["type"] != "avatar_batch":
+        return None
+    t_sent = obj["t_sent"]
+    if type(t_sent) is not float or not math.isfinite(t_sent):
+        return None
+    columns = [obj[name] for name in _ROW_BYTES]
+    if any(type(c) is not bytes for c in columns) or type(obj["rotations"]) is not bytes:
+        return None
+    n = len(obj["avatar_ids"]) // 8
+    if n > MAX_AVATARS or any(len(c) != n * size
+                              for c, size in zip(columns, _ROW_BYTES.values(), strict=True)):
+        return None
+    ids = np.frombuffer(obj["avatar_ids"], "<i8")
+    seqs = np.frombuffer(obj["seqs"], "<i8")
+    counts = np.frombuffer(obj["joint_counts"], "<u2")
+    times = np.frombuffer(obj["t_capture"] + obj["t_server_receive"] + obj["t_solved"], "<f8")
+    roots = np.frombuffer(obj["roots"], "<f4")
+    if not batch_columns_ok(ids, seqs, counts, times, roots, len(obj["rotations"])) \
+            or len(set(ids.tolist())) != n:
+        return None
+    try:
+        rotations = dequantize_rotations(obj["rotations"])
+    except ValueError:
+        return None
+    return AvatarBatch.model_construct(
+        avatar_ids=ids, seqs=seqs, roots=readonly(roots.reshape(n, 3).astype(np.float64)),
+        joint_counts=readonly(counts.astype(np.int64)), rotations=readonly(rotations),
+        t_capture=times[:n], t_server_receive=times[n:2 * n], t_solved=times[2 * n:],
+        t_sent=t_sent)
 
 
 def avatar_batch_wire(avatar_ids: ArrayLike, seqs: ArrayLike, roots: ArrayLike,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import pytest
 
@@ -11,8 +12,10 @@ from client.cli import main
 
 def test_demo_delivers_every_solved_frame_to_every_spectator(
         capsys: pytest.CaptureFixture[str]) -> None:
+    cores = os.sched_getaffinity(0)
     assert main(["demo", "--players", "2", "--spectators", "2", "--seconds", "2",
                  "--json"]) == 0
+    assert os.sched_getaffinity(0) == cores  # the spectators' pinning is undone
     doc = json.loads(capsys.readouterr().out)
     assert doc["players"] == 2 and doc["spectators"] == 2
     # two players at 90 Hz for two seconds (the schedule may skip a late slot or two)

@@ -12,7 +12,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from numpy.typing import NDArray
-from pydantic import BaseModel
+from pydantic import BaseModel, ValidationError
 
 from protocol import (
     CALIBRATION_ROLES,
@@ -42,6 +42,7 @@ from protocol import (
     rotation_angle,
 )
 from protocol.measure import sample_avatar_batch, sample_tracker_frame
+from protocol.messages import avatar_batch_from_wire
 from protocol.validation import MAX_AVATARS
 from solver.motion import DRIVING_DEVICES, VIVE_DEVICES
 
@@ -520,6 +521,85 @@ def test_avatar_batch_checks_name_the_column_and_avatar() -> None:
     too_many = np.arange(MAX_AVATARS + 1, dtype="<i8").tobytes()
     rejects(changed(avatar_ids=too_many), "avatar_batch.avatar_ids",
             f"{MAX_AVATARS + 1} avatars; at most {MAX_AVATARS}", client=False)
+
+
+# a value to write into one row of a packed column, by the column's dtype: the edges of
+# every check (negative, zero, the joint limit, NaN, infinities, the position limit)
+_SPECIAL = {"<i8": [-1, 0, 2**63 - 1], "<u2": [0, 1, MAX_JOINTS, MAX_JOINTS + 1, 65535],
+            "<f8": [math.nan, math.inf, -math.inf, 1e308, 0.0],
+            "<f4": [math.nan, math.inf, 999.0, 1001.0, -600.0]}
+_DTYPES = {"avatar_ids": "<i8", "seqs": "<i8", "joint_counts": "<u2", "roots": "<f4",
+           "t_capture": "<f8", "t_server_receive": "<f8", "t_solved": "<f8"}
+
+
+@st.composite
+def corrupted_batches(draw: st.DrawFn) -> dict[str, Any]:
+    """The wire map of a valid batch, left alone or corrupted in one of many ways."""
+    obj = wire(sample_avatar_batch(draw(st.integers(0, 4)), draw(st.integers(1, 6)),
+                                   seed=draw(st.integers(0, 3))))
+    kind = draw(st.sampled_from(["none", "value", "bytes", "length", "type", "keys",
+                                 "duplicate", "t_sent"]))
+    column = draw(st.sampled_from(sorted(_DTYPES)))
+    n = len(obj["avatar_ids"]) // 8
+    if kind == "value" and n:
+        array = np.frombuffer(obj[column], _DTYPES[column]).copy()
+        array.reshape(n, -1)[draw(st.integers(0, n - 1)), 0] = draw(
+            st.sampled_from(_SPECIAL[_DTYPES[column]]))
+        obj[column] = array.tobytes()
+    elif kind == "bytes":  # random bytes of the right length, also in the rotations
+        name = draw(st.sampled_from([column, "rotations"]))
+        obj[name] = draw(st.binary(min_size=len(obj[name]), max_size=len(obj[name])))
+    elif kind == "length":
+        name = draw(st.sampled_from([column, "rotations"]))
+        obj[name] = obj[name][:draw(st.integers(0, max(len(obj[name]) - 1, 0)))]
+    elif kind == "type":
+        obj[column] = draw(st.sampled_from([list(obj[column]), 7, "x", None]))
+    elif kind == "keys":
+        if draw(st.booleans()):
+            del obj[column]
+        else:
+            obj["extra"] = 1
+    elif kind == "duplicate" and n > 1:
+        ids = np.frombuffer(obj["avatar_ids"], "<i8").copy()
+        ids[-1] = ids[0]
+        obj["avatar_ids"] = ids.tobytes()
+    elif kind == "t_sent":
+        obj["t_sent"] = draw(st.sampled_from([math.nan, math.inf, 3, "1.0", True, -2.5]))
+    return obj
+
+
+def _check_agree(obj: dict[str, Any]) -> AvatarBatch | None:
+    """The whole-batch check accepts only what field validation accepts, equal."""
+    fast = avatar_batch_from_wire(dict(obj))
+    try:
+        slow: AvatarBatch | None = AvatarBatch.model_validate(obj, context={"wire": True})
+    except ValidationError:
+        slow = None
+    if fast is not None:
+        assert slow is not None and fast == slow
+        for array in (fast.avatar_ids, fast.roots, fast.rotations, fast.t_solved):
+            assert not array.flags.writeable
+    elif slow is not None:  # the fast path may only pass over unusual but valid input
+        assert type(obj["t_sent"]) is not float
+    return fast
+
+
+@settings(max_examples=400, deadline=None)
+@given(corrupted_batches())
+def test_whole_batch_check_accepts_only_what_validation_accepts(obj: dict[str, Any]) -> None:
+    _check_agree(obj)
+
+
+@pytest.mark.parametrize("column", sorted(_DTYPES))
+def test_whole_batch_check_at_every_edge(column: str) -> None:
+    assert _check_agree(wire(sample_avatar_batch(3, 4))) is not None
+    for value in _SPECIAL[_DTYPES[column]]:
+        for row, col in ((0, 0), (2, -1)):
+            obj = wire(sample_avatar_batch(3, 4))
+            array = np.frombuffer(obj[column], _DTYPES[column]).copy().reshape(3, -1)
+            array[row, col] = value
+            obj[column] = array.tobytes()
+            _check_agree(obj)
 
 
 def test_pong_times_must_be_ordered() -> None:
