@@ -17,17 +17,9 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ValidationError
 
+from protocol.batch import AvatarBatch, avatar_batch_from_wire, avatar_batch_wire
 from protocol.errors import ErrorCode, ProtocolError
-from protocol.messages import (
-    CLIENT_MESSAGES,
-    MESSAGE_TYPES,
-    AvatarBatch,
-    ClientMessage,
-    Message,
-    TrackerFrame,
-    avatar_batch_from_wire,
-    avatar_batch_wire,
-)
+from protocol.messages import CLIENT_MESSAGES, MESSAGE_TYPES, ClientMessage, Message, TrackerFrame
 from protocol.validation import MAX_CLIENT_MESSAGE_BYTES, MAX_MESSAGE_BYTES, protocol_error
 
 _WIRE = {"wire": True}  # validation context: arrays must arrive as bytes

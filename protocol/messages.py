@@ -5,9 +5,8 @@ Server -> client: Welcome, AvatarRoster (of AvatarInfo), AvatarBatch (of AvatarF
 Pong, Error.
 
 Each message has a ``type`` literal that names it on the wire. AvatarInfo is a record
-inside a roster; solved poses always travel in an AvatarBatch (of one when alone), a set
-of columns with one row per avatar, so a viewer has one way to receive them, and
-``AvatarBatch.frame`` gives one avatar's AvatarFrame.
+inside a roster; solved poses always travel in an AvatarBatch (of one when alone; see
+``protocol/batch.py``), so a viewer has one way to receive them.
 
 Arrays are read-only numpy arrays (float64, and int64 for ids) in Python and packed
 little-endian bytes on the wire (``model_dump()`` gives the wire form; ``protocol.codec``
@@ -23,34 +22,28 @@ log the client's offset (a jump in it shows up), and costs 9 bytes.
 
 from __future__ import annotations
 
-import math
-import re
-from collections.abc import Sequence
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 from pydantic import (
     AfterValidator,
-    BaseModel,
-    ConfigDict,
     Field,
     Strict,
     ValidationInfo,
     field_serializer,
     field_validator,
-    model_serializer,
     model_validator,
 )
 from pydantic_core import PydanticCustomError
 
-from protocol.quantize import dequantize_rotations, quantize_rotations
+from protocol.batch import AvatarBatch, AvatarFrame
+from protocol.model import Model, first_duplicate
 from protocol.roles import CALIBRATION_ROLES, DEVICE_ROLES, DeviceRole
 from protocol.validation import (
     MAX_AVATARS,
     MAX_JOINTS,
     Int,
-    IntArray,
     Name,
     RateHz,
     RoomName,
@@ -58,14 +51,10 @@ from protocol.validation import (
     Time,
     Token,
     as_rows,
-    batch_columns_ok,
     check_positions,
     device_poses,
-    int_column,
     is_wire,
     readonly,
-    time_column,
-    unit_quaternions,
 )
 
 PROTOCOL_VERSION = 1
@@ -86,39 +75,8 @@ def _check_version(version: int) -> int:
 Version = Annotated[int, Strict(), AfterValidator(_check_version)]
 
 
-def _first_duplicate(items: tuple[Any, ...] | list[Any]) -> Any:
-    """The first item that appears a second time, or None."""
-    if len(set(items)) == len(items):  # the common case, in one C call
-        return None
-    seen: set[Any] = set()
-    for item in items:
-        if item in seen:
-            return item
-        seen.add(item)
-    return None
-
-
-class _Model(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid", arbitrary_types_allowed=True)
-
-    def __eq__(self, other: object) -> bool:
-        # pydantic's own __eq__ would ask numpy for the truth value of an array
-        if type(other) is not type(self):
-            return NotImplemented
-        return all(_same(getattr(self, name), getattr(other, name))
-                   for name in type(self).model_fields)
-
-    __hash__ = None  # type: ignore[assignment]  # arrays are unhashable anyway
-
-
-def _same(a: Any, b: Any) -> bool:
-    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
-        return bool(np.array_equal(a, b))
-    return bool(a == b)
-
-
 # --------------------------------------------------------------------------- handshake
-class Hello(_Model):
+class Hello(Model):
     """First message of every connection: who joins which room, as what."""
 
     type: Literal["hello"] = "hello"
@@ -140,7 +98,7 @@ class Hello(_Model):
         return self
 
 
-class Welcome(_Model):
+class Welcome(Model):
     type: Literal["welcome"] = "welcome"
     protocol_version: Version
     connection_id: Int
@@ -149,7 +107,7 @@ class Welcome(_Model):
 
 
 # --------------------------------------------------------------------------- skeletons
-class AvatarInfo(_Model):
+class AvatarInfo(Model):
     """One avatar's calibrated skeleton: sent when it joins or is recalibrated."""
 
     avatar_id: Int
@@ -175,7 +133,7 @@ class AvatarInfo(_Model):
         if len(self.parents) != n or self.rest_offsets.shape[0] != n:
             raise ValueError(f"{n} joint_names but {len(self.parents)} parents and "
                              f"{self.rest_offsets.shape[0]} rest_offsets rows")
-        dup = _first_duplicate(self.joint_names)
+        dup = first_duplicate(self.joint_names)
         if dup is not None:
             raise ValueError(f"joint_names: {dup!r} appears twice")
         # parents first, one root: the order forward kinematics walks (solver.Skeleton)
@@ -192,7 +150,7 @@ class AvatarInfo(_Model):
         return len(self.joint_names)
 
 
-class AvatarRoster(_Model):
+class AvatarRoster(Model):
     """Avatars added or updated (recalibrated), and avatars removed (left)."""
 
     type: Literal["avatar_roster"] = "avatar_roster"
@@ -201,14 +159,14 @@ class AvatarRoster(_Model):
 
     @model_validator(mode="after")
     def _distinct(self) -> AvatarRoster:
-        dup = _first_duplicate([a.avatar_id for a in self.avatars] + list(self.removed))
+        dup = first_duplicate([a.avatar_id for a in self.avatars] + list(self.removed))
         if dup is not None:
             raise ValueError(f"avatar_id {dup} appears more than once in avatars/removed")
         return self
 
 
 # --------------------------------------------------------------------------- tracking
-class _DevicePoses(_Model):
+class _DevicePoses(Model):
     """Poses of tracked devices: one row per role, position (3) + quaternion x y z w (4)."""
 
     roles: tuple[DeviceRole, ...] = Field(min_length=1, max_length=len(DEVICE_ROLES))
@@ -219,7 +177,7 @@ class _DevicePoses(_Model):
     @field_validator("roles")
     @classmethod
     def _distinct_roles(cls, roles: tuple[str, ...]) -> tuple[str, ...]:
-        dup = _first_duplicate(roles)
+        dup = first_duplicate(roles)
         if dup is not None:
             raise ValueError(f"device role {dup!r} appears twice")
         return roles
@@ -275,314 +233,13 @@ class Calibrate(_DevicePoses):
         return self
 
 
-# --------------------------------------------------------------------------- solved poses
-def stage_latencies(t_capture: Any, t_server_receive: Any, t_solved: Any, t_sent: Any,
-                    t_received: float | None = None, t_presented: float | None = None,
-                    ) -> dict[str, Any]:
-    """Stage durations in seconds, for one frame's times (floats) or a batch's columns
-    (arrays, one value per avatar): the one definition of the stages. Pass viewer times
-    already on the server clock."""
-    out = {"capture_to_server": t_server_receive - t_capture,
-           "solve": t_solved - t_server_receive,
-           "server": t_sent - t_server_receive}
-    if t_received is not None:
-        out["capture_to_spectator"] = t_received - t_capture
-        out["network_to_spectator"] = t_received - t_sent
-    if t_presented is not None:
-        out["capture_to_presented"] = t_presented - t_capture
-        if t_received is not None:
-            out["receive_to_presented"] = t_presented - t_received
-    return out
-
-
-class AvatarFrame(_Model):
-    """One avatar's solved pose and every timestamp of its way, all on the server clock.
-
-    On the wire it travels as a row of an AvatarBatch (``AvatarBatch.frame``). A viewer
-    records its own receive and presented times (converted with its clock estimator);
-    ``latencies`` gives the stages.
-    """
-
-    avatar_id: Int
-    seq: Int  # seq of the TrackerFrame this was solved from
-    root: Array  # (3,) root joint position, metres
-    rotations: Array  # (J, 4) local joint rotations
-    t_capture: Time  # TrackerFrame.t_capture_server
-    t_server_receive: Time
-    t_solved: Time
-    t_sent: Time
-
-    @field_validator("root", mode="plain")
-    @classmethod
-    def _root(cls, value: Any) -> Array:
-        rows = as_rows(value, 3, wire=False)
-        if rows.shape[0] != 1:
-            raise ValueError(f"expected one position (3 numbers), got {rows.shape[0]} rows")
-        check_positions(rows)
-        return readonly(rows[0])
-
-    @field_validator("rotations", mode="plain")
-    @classmethod
-    def _rotations(cls, value: Any) -> Array:
-        q = as_rows(value, 4, wire=False)
-        if not 1 <= q.shape[0] <= MAX_JOINTS:
-            raise ValueError(f"{q.shape[0]} joints; 1 to {MAX_JOINTS} allowed")
-        return readonly(unit_quaternions(q))
-
-    def latencies(self, t_received: float | None = None,
-                  t_presented: float | None = None) -> dict[str, float]:
-        """Stage durations in seconds; pass viewer times already on the server clock."""
-        return stage_latencies(self.t_capture, self.t_server_receive, self.t_solved,
-                               self.t_sent, t_received, t_presented)
-
-
-class AvatarBatch(_Model):
-    """Avatar poses solved together and sent together, as columns.
-
-    Row b of every per-avatar column is avatar b; its joint rotations are the next
-    ``joint_counts[b]`` rows of ``rotations``. Columns rather than a list of per-avatar
-    records: a receiver checks and converts a whole batch in a few numpy calls however
-    many avatars it holds (a record cost ~8 us to validate, and a spectator of 16 players
-    gets 16 avatars 90 times a second). ``frame(b)`` gives avatar b as an AvatarFrame.
-    """
-
-    type: Literal["avatar_batch"] = "avatar_batch"
-    avatar_ids: IntArray  # (B,) distinct; int64 on the wire
-    seqs: IntArray  # (B,) seq of the TrackerFrame each pose was solved from; int64
-    roots: Array  # (B, 3) root joint positions, metres; float32 on the wire
-    joint_counts: IntArray  # (B,) joints of each avatar, 1..MAX_JOINTS; uint16
-    rotations: Array  # (sum of joint_counts, 4) local joint rotations; 5 bytes each
-    t_capture: Array  # (B,) TrackerFrame.t_capture_server of each; float64
-    t_server_receive: Array  # (B,)
-    t_solved: Array  # (B,)
-    t_sent: Time  # when the server sent the batch
-
-    @field_validator("avatar_ids", mode="plain")
-    @classmethod
-    def _ids(cls, value: Any, info: ValidationInfo) -> IntArray:
-        ids = int_column(value, is_wire(info), "<i8")
-        if ids.shape[0] > MAX_AVATARS:
-            raise ValueError(f"{ids.shape[0]} avatars; at most {MAX_AVATARS} per batch")
-        if len(set(ids.tolist())) != ids.shape[0]:
-            raise ValueError(f"avatar_id {_first_duplicate(ids.tolist())} appears more "
-                             f"than once")
-        return readonly(ids)
-
-    @field_validator("seqs", "t_capture", "t_server_receive", "t_solved", mode="plain")
-    @classmethod
-    def _per_avatar(cls, value: Any, info: ValidationInfo) -> Array | IntArray:
-        column: NDArray[Any]
-        if info.field_name == "seqs":
-            column = int_column(value, is_wire(info), "<i8")
-        else:
-            column = time_column(value, is_wire(info))
-        _same_length(column, info)
-        return readonly(column)
-
-    @field_validator("roots", mode="plain")
-    @classmethod
-    def _roots(cls, value: Any, info: ValidationInfo) -> Array:
-        roots = as_rows(value, 3, is_wire(info), wire_dtype="<f4")
-        _same_length(roots, info)
-        check_positions(roots)
-        return readonly(roots)
-
-    @field_validator("joint_counts", mode="plain")
-    @classmethod
-    def _counts(cls, value: Any, info: ValidationInfo) -> IntArray:
-        counts = int_column(value, is_wire(info), "<u2")
-        _same_length(counts, info)
-        if counts.shape[0] and (counts.min() < 1 or counts.max() > MAX_JOINTS):
-            bad = np.flatnonzero((counts < 1) | (counts > MAX_JOINTS))
-            raise ValueError(f"avatar {bad[0]} has {counts[bad[0]]} joints; 1 to "
-                             f"{MAX_JOINTS} allowed")
-        return readonly(counts)
-
-    @field_validator("rotations", mode="plain")
-    @classmethod
-    def _rotations(cls, value: Any, info: ValidationInfo) -> Array:
-        counts = info.data.get("joint_counts")
-        try:
-            if isinstance(value, bytes | bytearray | memoryview):
-                q = dequantize_rotations(value)
-            else:
-                q = unit_quaternions(as_rows(value, 4, is_wire(info)))
-        except ValueError as exc:  # "joint 106: ..." -> "avatar 2 (joint 0): ..."
-            raise ValueError(_name_avatar(str(exc), counts)) from None
-        if counts is not None and q.shape[0] != int(counts.sum()):
-            raise ValueError(f"{q.shape[0]} rotations for joint_counts summing to "
-                             f"{int(counts.sum())}")
-        return readonly(q)
-
-    @model_serializer(mode="plain")
-    def _wire(self) -> dict[str, Any]:
-        return avatar_batch_wire(self.avatar_ids, self.seqs, self.roots, self.joint_counts,
-                                 self.rotations, self.t_capture, self.t_server_receive,
-                                 self.t_solved, self.t_sent)
-
-    @classmethod
-    def from_arrays(cls, avatar_ids: Sequence[int], seqs: Sequence[int], roots: ArrayLike,
-                    rotations: ArrayLike | Sequence[ArrayLike], t_capture: ArrayLike,
-                    t_server_receive: ArrayLike, t_solved: ArrayLike, t_sent: float,
-                    ) -> AvatarBatch:
-        """A batch from the solver's arrays: ``roots`` (B, 3); ``rotations`` (B, J, 4),
-        or a sequence of (J_b, 4) arrays when the skeletons differ; ``t_solved`` one time
-        for all or one per avatar. Copies: the solver may reuse its buffers."""
-        n = len(avatar_ids)
-        if isinstance(rotations, np.ndarray) and rotations.ndim == 3:
-            counts = [rotations.shape[1]] * rotations.shape[0]
-            flat = rotations.reshape(-1, rotations.shape[2])
-        else:
-            parts = [np.asarray(r, dtype=np.float64) for r in rotations]  # type: ignore[union-attr]
-            counts = [len(p) for p in parts]
-            flat = np.concatenate(parts) if parts else np.zeros((0, 4))
-        return cls.model_validate({
-            "avatar_ids": avatar_ids, "seqs": seqs, "roots": np.reshape(roots, (-1, 3)),
-            "joint_counts": counts, "rotations": flat, "t_capture": t_capture,
-            "t_server_receive": t_server_receive,
-            "t_solved": np.broadcast_to(np.asarray(t_solved, dtype=np.float64), (n,)),
-            "t_sent": float(t_sent)})
-
-    @classmethod
-    def from_frames(cls, frames: Sequence[AvatarFrame], t_sent: float) -> AvatarBatch:
-        """The frames (each avatar at most once) as one batch sent at ``t_sent``."""
-        return cls.from_arrays([f.avatar_id for f in frames], [f.seq for f in frames],
-                               np.array([f.root for f in frames]).reshape(-1, 3),
-                               [f.rotations for f in frames],
-                               [f.t_capture for f in frames],
-                               [f.t_server_receive for f in frames],
-                               [f.t_solved for f in frames], t_sent)
-
-    @property
-    def size(self) -> int:
-        """The number of avatars."""
-        return int(self.avatar_ids.shape[0])
-
-    def frame(self, index: int) -> AvatarFrame:
-        """Avatar ``index`` of the batch (its arrays are views of the batch's)."""
-        start = int(self.joint_counts[:index].sum())
-        return self._frame(index, start)
-
-    @property
-    def frames(self) -> tuple[AvatarFrame, ...]:
-        starts = np.concatenate(([0], np.cumsum(self.joint_counts)))
-        return tuple(self._frame(i, int(starts[i])) for i in range(self.size))
-
-    def _frame(self, i: int, start: int) -> AvatarFrame:
-        # the columns were validated as a whole: the frame needs no second check
-        return AvatarFrame.model_construct(
-            avatar_id=int(self.avatar_ids[i]), seq=int(self.seqs[i]), root=self.roots[i],
-            rotations=self.rotations[start:start + int(self.joint_counts[i])],
-            t_capture=float(self.t_capture[i]),
-            t_server_receive=float(self.t_server_receive[i]),
-            t_solved=float(self.t_solved[i]), t_sent=self.t_sent)
-
-    def latencies(self, t_received: float | None = None) -> dict[str, NDArray[np.float64]]:
-        """Stage durations of every avatar (arrays, seconds); see ``stage_latencies``."""
-        t_sent = np.full(self.size, self.t_sent)  # so that every stage has a row per avatar
-        return stage_latencies(self.t_capture, self.t_server_receive, self.t_solved,
-                               t_sent, t_received)
-
-    def stamped(self, t_sent: float) -> AvatarBatch:
-        """A copy with t_sent set (the server stamps just before sending)."""
-        return self.model_copy(update={"t_sent": float(t_sent)})
-
-
-_BATCH_FIELDS = frozenset(AvatarBatch.model_fields)
-# bytes per avatar of each packed column (rotations: 5 per joint, checked apart)
-_ROW_BYTES = {"avatar_ids": 8, "seqs": 8, "roots": 12, "joint_counts": 2, "t_capture": 8,
-              "t_server_receive": 8, "t_solved": 8}
-
-
-def avatar_batch_from_wire(obj: dict[str, Any]) -> AvatarBatch | None:
-    """The wire form of a well-formed AvatarBatch checked whole, in one compiled pass
-    (~2x faster than field-by-field validation: every spectator decodes every batch), or
-    None when anything is unusual; ``AvatarBatch.model_validate`` then says what. It
-    accepts only what the model's own validation accepts, with the same result: a
-    property test holds the two equal.
-    """
-    if obj.keys() != _BATCH_FIELDS or obj["type"] != "avatar_batch":
-        return None
-    t_sent = obj["t_sent"]
-    if type(t_sent) is not float or not math.isfinite(t_sent):
-        return None
-    columns = [obj[name] for name in _ROW_BYTES]
-    if any(type(c) is not bytes for c in columns) or type(obj["rotations"]) is not bytes:
-        return None
-    n = len(obj["avatar_ids"]) // 8
-    if n > MAX_AVATARS or any(len(c) != n * size
-                              for c, size in zip(columns, _ROW_BYTES.values(), strict=True)):
-        return None
-    ids = np.frombuffer(obj["avatar_ids"], "<i8")
-    seqs = np.frombuffer(obj["seqs"], "<i8")
-    counts = np.frombuffer(obj["joint_counts"], "<u2")
-    times = np.frombuffer(obj["t_capture"] + obj["t_server_receive"] + obj["t_solved"], "<f8")
-    roots = np.frombuffer(obj["roots"], "<f4")
-    if not batch_columns_ok(ids, seqs, counts, times, roots, len(obj["rotations"])) \
-            or len(set(ids.tolist())) != n:
-        return None
-    try:
-        rotations = dequantize_rotations(obj["rotations"])
-    except ValueError:
-        return None
-    return AvatarBatch.model_construct(
-        avatar_ids=ids, seqs=seqs, roots=readonly(roots.reshape(n, 3).astype(np.float64)),
-        joint_counts=readonly(counts.astype(np.int64)), rotations=readonly(rotations),
-        t_capture=times[:n], t_server_receive=times[n:2 * n], t_solved=times[2 * n:],
-        t_sent=t_sent)
-
-
-def avatar_batch_wire(avatar_ids: ArrayLike, seqs: ArrayLike, roots: ArrayLike,
-                      joint_counts: ArrayLike, rotations: ArrayLike, t_capture: ArrayLike,
-                      t_server_receive: ArrayLike, t_solved: ArrayLike, t_sent: float,
-                      ) -> dict[str, Any]:
-    """An AvatarBatch's wire map from its columns (for msgpack), unchecked: the
-    serializer of a validated batch, and the server's direct encoder
-    (``protocol.codec.encode_avatar_batch``), which checks its solver arrays itself."""
-    n = np.shape(avatar_ids)[0]
-
-    def packed(column: ArrayLike, dtype: str) -> bytes:  # a scalar stands for all rows
-        array = np.asarray(column, dtype=dtype)
-        return (array if array.ndim else np.full(n, array, dtype=dtype)).tobytes()
-
-    return {"type": "avatar_batch", "avatar_ids": packed(avatar_ids, "<i8"),
-            "seqs": packed(seqs, "<i8"),
-            "roots": np.ascontiguousarray(roots, dtype="<f4").tobytes(),
-            "joint_counts": packed(joint_counts, "<u2"),
-            "rotations": quantize_rotations(rotations),
-            "t_capture": packed(t_capture, "<f8"),
-            "t_server_receive": packed(t_server_receive, "<f8"),
-            "t_solved": packed(t_solved, "<f8"), "t_sent": float(t_sent)}
-
-
-def _same_length(column: NDArray[Any], info: ValidationInfo) -> None:
-    ids = info.data.get("avatar_ids")
-    if ids is not None and column.shape[0] != ids.shape[0]:
-        raise ValueError(f"{column.shape[0]} rows for {ids.shape[0]} avatar_ids")
-
-
-def _name_avatar(message: str, counts: IntArray | None) -> str:
-    """'joint 106: why' or 'row 106 why' (a row of ``rotations``) -> 'avatar 2 (joint 0):
-    why', given the avatars' joint counts."""
-    found = re.match(r"(?:joint|row) (\d+):? (.*)", message, re.DOTALL)
-    if counts is None or found is None:
-        return message
-    row = int(found.group(1))
-    ends = np.cumsum(counts)
-    avatar = int(np.searchsorted(ends, row, side="right"))
-    if avatar >= counts.shape[0]:
-        return message
-    first = int(ends[avatar] - counts[avatar])
-    return f"avatar {avatar} (joint {row - first}): {found.group(2)}"
-
-
 # --------------------------------------------------------------------------- clock, errors
-class Ping(_Model):
+class Ping(Model):
     type: Literal["ping"] = "ping"
     t0: Time  # client clock when sent
 
 
-class Pong(_Model):
+class Pong(Model):
     type: Literal["pong"] = "pong"
     t0: Time  # echoed from the Ping
     t1: Time  # server clock when the Ping arrived
@@ -596,7 +253,7 @@ class Pong(_Model):
         return self
 
 
-class Error(_Model):
+class Error(Model):
     """Why a message was rejected (``code`` from protocol.errors.ErrorCode)."""
 
     type: Literal["error"] = "error"
@@ -604,7 +261,7 @@ class Error(_Model):
     message: Text
 
 
-class Leave(_Model):
+class Leave(Model):
     type: Literal["leave"] = "leave"
     reason: Text = ""
 
@@ -613,9 +270,9 @@ ClientMessage = Hello | TrackerFrame | Calibrate | Ping | Leave
 ServerMessage = Welcome | AvatarRoster | AvatarBatch | Pong | Error
 Message = ClientMessage | ServerMessage
 
-CLIENT_MESSAGES: tuple[type[_Model], ...] = (Hello, TrackerFrame, Calibrate, Ping, Leave)
-SERVER_MESSAGES: tuple[type[_Model], ...] = (Welcome, AvatarRoster, AvatarBatch, Pong, Error)
-MESSAGE_TYPES: dict[str, type[_Model]] = {
+CLIENT_MESSAGES: tuple[type[Model], ...] = (Hello, TrackerFrame, Calibrate, Ping, Leave)
+SERVER_MESSAGES: tuple[type[Model], ...] = (Welcome, AvatarRoster, AvatarBatch, Pong, Error)
+MESSAGE_TYPES: dict[str, type[Model]] = {
     cls.model_fields["type"].default: cls for cls in CLIENT_MESSAGES + SERVER_MESSAGES}
 
 __all__ = ["PROTOCOL_VERSION", "SUPPORTED_VERSIONS", "AvatarBatch", "AvatarFrame",

@@ -41,8 +41,8 @@ from protocol import (
     encode,
     rotation_angle,
 )
+from protocol.batch import avatar_batch_from_wire
 from protocol.measure import sample_avatar_batch, sample_tracker_frame
-from protocol.messages import avatar_batch_from_wire
 from protocol.validation import MAX_AVATARS
 from solver.motion import DRIVING_DEVICES, VIVE_DEVICES
 
