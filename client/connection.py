@@ -16,9 +16,8 @@ import contextlib
 import errno
 import logging
 import socket
-from collections import deque
 from types import TracebackType
-from typing import Any, Literal
+from typing import Literal
 
 from pydantic import ValidationError
 from websockets.asyncio.client import ClientConnection, connect
@@ -28,8 +27,6 @@ from websockets.exceptions import (
     InvalidStatus,
     InvalidURI,
 )
-from websockets.frames import DATA_OPCODES, Frame
-from websockets.protocol import Event
 
 from client.sources.base import now
 from protocol import (
@@ -48,6 +45,7 @@ from protocol import (
     decode,
     encode,
 )
+from protocol.arrivals import ArrivalStamps, arrival_time
 from protocol.validation import protocol_error
 
 log = logging.getLogger(__name__)
@@ -123,24 +121,11 @@ def make_hello(url: str, role: Literal["player", "spectator"], room: str, name: 
                            ) from None
 
 
-class TimestampedConnection(ClientConnection):
-    """A client connection that notes when each message reached this process.
+class TimestampedConnection(ArrivalStamps, ClientConnection):
+    """A client connection that notes when each message reached this process
+    (``protocol.arrivals``)."""
 
-    The stamp is taken as the event loop hands the socket's bytes to websockets, before
-    this message waits for its reader task: a demo runs many spectators in one process,
-    and one spectator's decoding must not count as another's network latency (each real
-    spectator has a machine of its own). Decoding and rendering are measured by their own
-    stages on the viewer.
-    """
-
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
-        self.arrivals: deque[float] = deque()
-
-    def process_event(self, event: Event) -> None:
-        if isinstance(event, Frame) and event.opcode in DATA_OPCODES and event.fin:
-            self.arrivals.append(now())
-        super().process_event(event)
+    clock = staticmethod(now)
 
 
 async def open_session(url: str, hello: Hello, *, timeout: float = OPEN_TIMEOUT,
@@ -167,8 +152,7 @@ async def _handshake(url: str, ws: ClientConnection, hello: Hello, timeout: floa
         await ws.send(encode(hello))
         async with asyncio.timeout(timeout):
             data = await ws.recv()
-        if isinstance(ws, TimestampedConnection):
-            ws.arrivals.popleft()  # the welcome's: receive() pairs the rest in order
+        arrival_time(ws, now)  # the welcome's stamp: receive() pairs the rest in order
         reply = decode(data)
     except TimeoutError:
         raise SessionError(url, f"no welcome from the server within {timeout:g} s") from None
@@ -250,9 +234,7 @@ class Session:
                 why = ("the session was closed" if self._leaving
                        else _closed_reason(exc, self.last_error))
                 raise SessionError(self.url, why) from None
-            # when the bytes reached this process (see TimestampedConnection)
-            arrivals = getattr(self.ws, "arrivals", None)
-            t = arrivals.popleft() if arrivals else now()
+            t = arrival_time(self.ws, now)  # when the bytes reached this process
             self.bytes_received += len(data)
             msg = decode(data)
             if isinstance(msg, Pong):

@@ -35,6 +35,7 @@ from protocol import (
     decode_client,
     encode,
 )
+from protocol.arrivals import ArrivalStamps, arrival_time
 from server.avatars import AvatarSolver
 from server.clock import now
 from server.metrics import Metrics
@@ -97,6 +98,7 @@ class Session:
     async def _hello(self, ws: ServerConnection) -> Hello | None:
         """The first message; anything else gets an Error and the connection is closed."""
         data = await asyncio.wait_for(ws.recv(), HELLO_TIMEOUT)
+        arrival_time(ws, now)  # its stamp: the handlers pair the rest in order
         try:
             msg = decode_client(data)
             if not isinstance(msg, Hello):
@@ -127,7 +129,7 @@ class Session:
                                      server_time=now())))
         try:
             async for data in ws:
-                t_received = now()
+                t_received = arrival_time(ws, now)
                 try:
                     msg = decode_client(data)
                     if isinstance(msg, TrackerFrame):
@@ -184,7 +186,7 @@ class Session:
         spectator.task = asyncio.get_running_loop().create_task(outbox.run())
         try:
             async for data in ws:
-                t_received = now()
+                t_received = arrival_time(ws, now)
                 try:
                     msg = decode_client(data)
                     if isinstance(msg, TrackerFrame | Calibrate):
@@ -234,6 +236,7 @@ async def run_server(host: str, port: int, session: Session | None = None,
             loop.add_signal_handler(sig, stop.set)
     server: Server
     async with serve(session.handle, host, port, compression=None,
+                     create_connection=TimestampedServerConnection,
                      max_size=WEBSOCKET_MAX_SIZE, max_queue=64) as server:
         bound = next(iter(server.sockets)).getsockname()[1]
         log.info("posecast server on ws://%s:%d", host, bound)
@@ -243,6 +246,14 @@ async def run_server(host: str, port: int, session: Session | None = None,
         server.close(close_connections=True)
         await server.wait_closed()
     return session
+
+
+class TimestampedServerConnection(ArrivalStamps, ServerConnection):
+    """A frame is received when its bytes reach this process (``protocol.arrivals``),
+    not when its handler gets to it: time spent behind the rest of a burst or a solve is
+    the server's."""
+
+    clock = staticmethod(now)
 
 
 def install_fast_loop() -> bool:
