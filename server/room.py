@@ -128,7 +128,10 @@ class Room:
         self._arrived = True
         if not self._scheduled:
             self._scheduled = True
-            self._burst_start = t_received
+            # the window counts from when the burst's first frame is handled, not from
+            # its arrival: a frame that queued behind a solve would otherwise close it
+            # at once and split the burst into more, smaller batches
+            self._burst_start = now()
             asyncio.get_running_loop().call_soon(self._solve_when_burst_ends)
 
     def _solve_when_burst_ends(self) -> None:
