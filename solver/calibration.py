@@ -9,7 +9,8 @@ Two methods:
   raised to where the legs pivot in the hip tracker's frame (knees kept in place).
 
 Either way every device then gets a *mount*: its pose in the frame of the bone it is
-strapped to, fixed at this frame. Driving devices (head, hip, hands, feet) give the
+strapped to, fixed at this frame (a forearm tracker follows only part of its bone's
+twist: ``FOREARM_TWIST_SHARE``). Driving devices (head, hip, hands, feet) give the
 solver its targets through their mounts; held-out devices (forearms, knees) are only
 predicted through theirs, on whichever of two bones they sit nearest to at calibration.
 """
@@ -55,6 +56,21 @@ GRIP_TWIST = 0.0  # radians; see README: the recordings give no clear winner
 # 135/141 -> 107/109 mm); 5 and 13 cm gave 19.3 and 19.1 mm. BVH is unaffected (no
 # calibration there).
 HIP_PIVOT_RAISE = 0.09
+# How the arm is rolled in the T-pose (radians): the upper arm turned outwards (elbow
+# crease up) and the forearm pronated as much, palm down either way; the hand and its
+# controller do not tell these apart, the forearm trackers do. With a forearm tracker
+# following only part of the pronation (FOREARM_TWIST_SHARE) and the template's roll
+# (crease forward) it was 20-60 deg off in twist, one sign per side, whenever the hands
+# left the T-pose (the hand turns 20-60 deg against the tracker there in every clip but
+# shoulder_abduction and walking). Roll 80-100 deg with a share of 0.5-0.7 were all
+# within 0.7 mm of each other on the forearm trackers.
+ARM_ROLL = float(np.radians(90.0))
+# Share of the forearm's twist that the strap of a forearm tracker follows: strapped
+# just below the elbow, it turns with the skin, not with the wrist (in hand_pronation the
+# tracker turns ~0.3-0.4 as far as the hand against the elbow). Roll 90 deg, share 0.5:
+# Vive held-out 45.8 -> 43.7 mm, rotation 9.1 -> 5.7 deg (0.6: 43.5 mm, 6.1 deg).
+FOREARM_TWIST_SHARE = 0.5
+TWIST_SHARE_DEVICES = ("left_forearm", "right_forearm")
 
 
 @dataclass(frozen=True)
@@ -64,6 +80,9 @@ class Mount:
     joint: int
     position: NDArray[np.float64]  # (3,) in the bone's frame
     rotation: NDArray[np.float64]  # (4,)
+    # share of the bone's twist (about its limit y axis) the device follows: a tracker
+    # strapped along a forearm turns with the skin under it, not with the wrist
+    twist_share: float = 1.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -102,6 +121,9 @@ class Calibration:
         for d, name in enumerate(devices):
             m = self.mounts[name]
             bq = gq[:, m.joint]
+            if m.twist_share != 1.0:
+                parent = self.rig.skeleton.parents[m.joint]
+                bq = _partly_twisted(self.rig, m.joint, gq[:, parent], bq, m.twist_share)
             pos[:, d] = gp[:, m.joint] + R.rotate(bq, m.position)
             rot[:, d] = R.mul(bq, m.rotation)
         return pos, rot
@@ -183,11 +205,15 @@ def calibrate(rig: Rig, positions: dict[str, NDArray[np.float64]],
             out = R.normalize_vec(gp[end] - gp[rig.role(f"upperarm_{side}")])
             _aim(rig, offsets, pose, root, upper, end,
                  positions[dev] - CONTROLLER_BEYOND_WRIST * out)
-        # the grip: the forearm twist of the calibration pose (palm down = 0)
+        # the grip: the forearm twist of the calibration pose (palm down = 0), and the
+        # roll of the upper arm (ARM_ROLL), which the forearm undoes
         for side in "lr":
             j = rig.role(f"forearm_{side}")
-            t4 = R.from_axis_angle([0.0, 1.0, 0.0], GRIP_TWIST)
+            t4 = R.from_axis_angle([0.0, 1.0, 0.0], GRIP_TWIST + ARM_ROLL)
             pose[j] = R.mul(R.mul(rig.pre[j], t4), rig.post[j])
+            u = rig.role(f"upperarm_{side}")
+            roll = R.from_axis_angle([0.0, 1.0, 0.0], -ARM_ROLL)
+            pose[u] = R.mul(pose[u], R.mul(R.conjugate(rig.post[u]), R.mul(roll, rig.post[u])))
         # the legs pivot higher in the hip tracker's frame than the template's hip
         # joints (see HIP_PIVOT_RAISE): raise them, lengthening the thighs so that the
         # T-pose knees stay where they were
@@ -202,10 +228,25 @@ def calibrate(rig: Rig, positions: dict[str, NDArray[np.float64]],
     for name, p in positions.items():
         candidates = [rig.role(r) for r in DEVICE_BONES[name]]
         joint = min(candidates, key=lambda j: _distance_to_bone(rig, gp, j, p))
-        inv = R.conjugate(gq[joint])
+        share = FOREARM_TWIST_SHARE if name in TWIST_SHARE_DEVICES else 1.0
+        bq = gq[joint]
+        if share != 1.0:
+            bq = _partly_twisted(rig, joint, gq[sk.parents[joint]], bq, share)
+        inv = R.conjugate(bq)
         mounts[name] = Mount(joint, R.rotate(inv, p - gp[joint]),
-                             R.mul(inv, rotations[name]))
+                             R.mul(inv, rotations[name]), share)
     return Calibration(rig, offsets, pose, root, mounts, float(s))
+
+
+def _partly_twisted(rig: Rig, j: int, parent_q: NDArray[np.float64],
+                    joint_q: NDArray[np.float64], share: float) -> NDArray[np.float64]:
+    """Global rotation(s) of joint j with only `share` of its twist (about its limit y
+    axis, away from the canonical pose) kept."""
+    local = R.mul(R.conjugate(parent_q), joint_q)
+    D = R.mul(R.mul(R.conjugate(rig.pre[j]), local), R.conjugate(rig.post[j]))
+    _swing, twist = R.swing_twist(D, axis=1)
+    undo = R.from_axis_angle([0.0, 1.0, 0.0], -(1.0 - share) * np.asarray(twist))
+    return R.mul(joint_q, R.mul(R.conjugate(rig.post[j]), R.mul(undo, rig.post[j])))
 
 
 def _distance_to_bone(rig: Rig, gp: NDArray[np.float64], j: int,

@@ -71,3 +71,24 @@ def test_bvh_eval_follows_a_body_that_travels(shared_data: SharedData, name: str
     assert result.mean_error_mm < 25.0
     assert max(result.position_error_mm.values()) < 100.0
     assert result.position_error_mm["Hips"] < 1.0  # the pelvis tracker is met exactly
+
+
+def test_a_forearm_tracker_follows_a_share_of_the_forearm_twist() -> None:
+    from solver.calibration import _partly_twisted
+    from solver.readers.gltf import load_makehuman
+    from solver.rig import build_rig, global_pose
+
+    rig = build_rig(load_makehuman().skeleton)
+    j = rig.role("forearm_l")
+    parent = rig.skeleton.parents[j]
+    pose = rig.canonical.copy()
+    pose[j] = R.mul(R.mul(rig.pre[j], R.from_axis_angle([0.0, 1.0, 0.0], 0.8)), rig.post[j])
+    gq, _ = global_pose(rig.skeleton, pose)
+    canon_gq, _ = global_pose(rig.skeleton, rig.canonical)
+    # share 1: the bone itself; share 0: the bone without its twist; half: half of it
+    np.testing.assert_allclose(_partly_twisted(rig, j, gq[parent], gq[j], 1.0), gq[j],
+                               atol=1e-12)
+    assert R.angle_between(_partly_twisted(rig, j, gq[parent], gq[j], 0.0),
+                           canon_gq[j]) < 1e-9
+    assert abs(R.angle_between(_partly_twisted(rig, j, gq[parent], gq[j], 0.5),
+                               canon_gq[j]) - 0.4) < 1e-9

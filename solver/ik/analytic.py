@@ -10,7 +10,9 @@
   forearm (shin) where the hand's (foot's) orientation says it should be with a neutral
   wrist (ankle): the paper's subjects complained of twisted elbows, which is what a
   position-only solver gives. The forearm takes the hand's twist (pronation), the wrist
-  and ankle the rest. The clavicle follows the hand a little (a fifth of the way).
+  and ankle the rest; a nearly straight arm instead keeps the forearm's twist and turns
+  the hand with the shoulder (its elbow cannot tell the two apart). The clavicle follows
+  the hand a little (a fifth of the way).
 - Every joint is clamped to its limits; where a clamp or an unreachable target leaves an
   error, a few damped least squares iterations over the whole chain finish the job.
 """
@@ -24,6 +26,7 @@ from numba import njit, prange
 
 from solver.kernels import (
     PARALLEL_MIN_AVATARS,
+    Quat,
     clamp_joint,
     compose_joint,
     dls_chain,
@@ -38,7 +41,12 @@ from solver.kernels import (
     qnormalize,
     qrotate,
     qrotate_inv,
+    row4,
     set_effector_rotation,
+    tconj,
+    tmul,
+    trotate,
+    vec4,
 )
 
 # share of the arm's turn away from the T-pose that the clavicle takes. Measured on the mocap
@@ -46,6 +54,11 @@ from solver.kernels import (
 # dropped the shoulder 13-63 mm with the arms down (Vive mean 28.7 -> 23.2 mm, BVH MPJPE
 # 14.0 -> 12.2 mm at 0). Kept as a knob for an elevation-only rule above the horizontal.
 CLAVICLE_SHARE = 0.0
+# Elbow bends (radians) over which a nearly straight arm's swivel hands over from keeping
+# the forearm's twist (the upper arm rolls with the hand) to the bend's own swivel (see
+# solve_limb). 5..30 and 15..60 deg came within 0.6 mm of 10..45 on the forearm trackers.
+BEND_LO = math.radians(10.0)
+BEND_HI = math.radians(45.0)
 
 
 @njit(cache=True)
@@ -223,6 +236,21 @@ def _swivel(Gu, offsets, pre, post, canon, mid, end, tq, dvec, nx, ny, nz,
 
 
 @njit(cache=True)
+def _forearm_twist(Gm: Quat, pre, post, mid, end, tq) -> float:
+    """Twist of the forearm (about its limit y axis) that leaves the wrist no twist, for
+    a forearm whose global rotation Gm has none: X = (Gm post^-1)^-1 T post_end^-1 =
+    Ry(tau) K D_end, tau the twist (about y) of X less that of K."""
+    lim = tmul(Gm, tconj(row4(post, mid)))
+    X = tmul(tmul(tconj(lim), vec4(tq)), tconj(row4(post, end)))
+    # twist-first split X = Ry(t) * S gives t = 2 atan2(X_y, X_w); K = post_mid *
+    # pre_end is a pure turn about the shared y axis (the hand's limit frame runs
+    # along the forearm), so tau = t - twist(K)
+    K = tmul(row4(post, mid), row4(pre, end))
+    tau = 2.0 * math.atan2(X[1], X[3]) - 2.0 * math.atan2(K[1], K[3])
+    return math.atan2(math.sin(tau), math.cos(tau))
+
+
+@njit(cache=True)
 def solve_limb(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, upper, mid, end,
                target, twist_in_mid):
     """Two-bone limb: upper (upper arm / thigh), mid (forearm / shin, hinge about its limit
@@ -244,6 +272,9 @@ def solve_limb(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, upper, mid
     qmul_conj_left(pre[mid], q[mid], t4a)
     qmul_conj_right(t4a, post[mid], t4b)
     cur = 2.0 * math.atan2(t4b[0], t4b[3])
+    # the forearm's twist of the last frame (D = swing * Ry(twist)); none for a leg
+    tau_prev = 2.0 * math.atan2(t4b[1], t4b[3]) if twist_in_mid else 0.0
+    tau_prev = math.atan2(math.sin(tau_prev), math.cos(tau_prev))
     theta = _hinge_angle(offsets, pre, post, lo, hi, mid, end, dist, cur)
     compose_joint(pre[mid], post[mid], theta, 0.0, 0.0, q[mid], t4a, t4b)
     # aim the limb: end joint in upper-local coordinates, then shortest arc to target
@@ -261,6 +292,22 @@ def solve_limb(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, upper, mid
     nx, ny, nz = dvec[0] / dist, dvec[1] / dist, dvec[2] / dist
     psi = _swivel(Gu, offsets, pre, post, canon, mid, end, tq, dvec, nx, ny, nz,
                   twist_in_mid)
+    if twist_in_mid:
+        # a (nearly) straight arm turns the hand about its length with the shoulder as
+        # well as the forearm, and its elbow says nothing about which: keep the forearm's
+        # twist of the last frame and let the upper arm roll, handing over to the swivel
+        # the elbow's bend dictates as it grows
+        wb = min(max((theta - BEND_LO) / (BEND_HI - BEND_LO), 0.0), 1.0)
+        if wb < 1.0:
+            Gm = tmul(vec4(Gu), vec4(q[mid]))  # forearm, hinge only (no twist), psi = 0
+            tau0 = _forearm_twist(Gm, pre, post, mid, end, tq)
+            # which way the forearm's twist axis runs along the shoulder-wrist line
+            yw = trotate(tmul(Gm, tconj(row4(post, mid))), (0.0, 1.0, 0.0))
+            sgn = 1.0 if yw[0] * nx + yw[1] * ny + yw[2] * nz >= 0.0 else -1.0
+            keep = sgn * (tau0 - tau_prev)
+            keep = math.atan2(math.sin(keep), math.cos(keep))
+            dpsi = psi - keep
+            psi = keep + wb * math.atan2(math.sin(dpsi), math.cos(dpsi))
     qaxis_angle(nx, ny, nz, psi, rot)
     qmul(rot, Gu, t4a)
     Gu[:] = t4a
@@ -273,18 +320,7 @@ def solve_limb(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, upper, mid
     chain3[2] = end
     fk_joints(parents, offsets, q, gq, gp, chain3, 2)
     if twist_in_mid:
-        # forearm twist: X = (G_mid post^-1)^-1 T post_end^-1 = Ry(tau) K D_end;
-        # take tau as the twist (about y) of X so that the wrist keeps no twist
-        X = np.empty(4)
-        qmul_conj_right(gq[mid], post[mid], t4a)
-        qmul_conj_left(t4a, tq, t4b)
-        qmul_conj_right(t4b, post[end], X)
-        # twist-first split X = Ry(t) * S gives t = 2 atan2(X_y, X_w); K = post_mid *
-        # pre_end is a pure turn about the shared y axis (the hand's limit frame runs
-        # along the forearm), so tau = t - twist(K)
-        qmul(post[mid], pre[end], t4a)
-        tau = 2.0 * math.atan2(X[1], X[3]) - 2.0 * math.atan2(t4a[1], t4a[3])
-        tau = math.atan2(math.sin(tau), math.cos(tau))
+        tau = _forearm_twist(row4(gq, mid), pre, post, mid, end, tq)
         compose_joint(pre[mid], post[mid], theta, tau, 0.0, q[mid], t4a, t4b)
         clamp_joint(q[mid], pre[mid], post[mid], lo[mid], hi[mid], t4a, t4b)
         fk_joints(parents, offsets, q, gq, gp, chain3[1:], 1)
