@@ -64,8 +64,9 @@ def pin_to_cores(role: str) -> None:
     each of those wake-ups preempted the server in the middle of its 16 writes (a
     broadcast took 0.6 ms instead of 0.15). Players send before the server reads, so
     they share its core without that. Measured with 16 players and 16 spectators, 20 s
-    runs, p99 server / capture_to_spectator (ms): unpinned 1.4-1.7 / 4.8-5.5; server
-    alone on a core 1.0-1.1 / 4.0-5.5; this placement 0.85-1.0 / 3.2-4.3.
+    runs, p99 server (stamped in its handler, as it then was) / capture_to_spectator
+    (ms): unpinned 1.4-1.7 / 4.8-5.5; server alone on a core 1.0-1.1 / 4.0-5.5; this
+    placement 0.85-1.0 / 3.2-4.3.
     """
     cores = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
     if len(cores) < 2:
