@@ -569,6 +569,119 @@ def dls_chain(parents, offsets, q, gq, gp, pre, post, lo, hi, dofmask,
     return it
 
 
+@njit(cache=True)
+def dls_tree_scratch(max_cols: int, max_effs: int) -> tuple[Array, IntArray, IntArray,
+                                                            Array, Array, Array]:
+    """Work arrays of ``dls_tree``: up to max_cols degrees of freedom and max_effs
+    effectors, allocated once per avatar."""
+    rows = 6 * max_effs
+    return (np.empty((rows, max_cols)), np.empty(max_cols, dtype=np.int64),
+            np.empty(max_cols, dtype=np.int64), np.empty((rows, rows)), np.empty(rows),
+            np.empty(rows))
+
+
+@njit(cache=True, inline="always")
+def drives(parents: IntArray, j: int, eff: int) -> bool:
+    """True if joint j is eff or one of its ancestors (turning j moves eff)."""
+    k = eff
+    while k >= 0:
+        if k == j:
+            return True
+        k = parents[k]
+    return False
+
+
+@njit(cache=True, inline="always")
+def tree_error(gq, gp, effs, targets, slots, w_rot, e):
+    """``effector_error`` of every effector k (to targets[slots[k]]) stacked into e;
+    returns the norm."""
+    s = 0.0
+    for k in range(effs.shape[0]):
+        eff = effs[k]
+        t = slots[k]
+        tq = (targets[t, 3], targets[t, 4], targets[t, 5], targets[t, 6])
+        rv = tto_rotvec(tmul(tq, tconj(row4(gq, eff))))
+        for d in range(3):
+            e[6 * k + d] = targets[t, d] - gp[eff, d]
+            e[6 * k + 3 + d] = w_rot * rv[d]
+    for r in range(6 * effs.shape[0]):
+        s += e[r] * e[r]
+    return math.sqrt(s)
+
+
+@njit(cache=True)
+def dls_tree(parents, offsets, q, gq, gp, pre, post, lo, hi, dofmask, joints, nj,
+             effs, targets, slots, w_rot, lam, max_iter, eps, scratch):
+    """``dls_chain`` over a tree of joints (parents first) with several effectors at once:
+    effector k (effs[k]) goes to targets[slots[k]], each contributing six rows; a joint's
+    columns are zero for effectors it does not move. Returns the iterations used."""
+    Jm, cols_joint, cols_axis, A, y, e = scratch
+    ne = effs.shape[0]
+    rows = 6 * ne
+    it = 0
+    while it < max_iter:
+        fk_joints(parents, offsets, q, gq, gp, joints, nj)
+        if tree_error(gq, gp, effs, targets, slots, w_rot, e) < eps:
+            break
+        m = 0
+        for i in range(nj):
+            j = joints[i]
+            for ax in range(3):
+                if not dofmask[j, ax]:
+                    continue
+                a = joint_axis_world(gq, post, j, ax)
+                for k in range(ne):
+                    eff = effs[k]
+                    r0 = 6 * k
+                    if drives(parents, j, eff):
+                        rx = gp[eff, 0] - gp[j, 0]
+                        ry = gp[eff, 1] - gp[j, 1]
+                        rz = gp[eff, 2] - gp[j, 2]
+                        Jm[r0, m] = a[1] * rz - a[2] * ry
+                        Jm[r0 + 1, m] = a[2] * rx - a[0] * rz
+                        Jm[r0 + 2, m] = a[0] * ry - a[1] * rx
+                        Jm[r0 + 3, m] = w_rot * a[0]
+                        Jm[r0 + 4, m] = w_rot * a[1]
+                        Jm[r0 + 5, m] = w_rot * a[2]
+                    else:
+                        for r in range(6):
+                            Jm[r0 + r, m] = 0.0
+                cols_joint[m] = j
+                cols_axis[m] = ax
+                m += 1
+        for r in range(rows):
+            for c in range(r + 1):
+                s = 0.0
+                for k in range(m):
+                    s += Jm[r, k] * Jm[c, k]
+                A[r, c] = s
+                A[c, r] = s
+            A[r, r] += lam * lam
+        if not solve_spd(A, e, rows, y):
+            break
+        k = 0
+        while k < m:  # the columns of one joint are adjacent
+            j = cols_joint[k]
+            d0 = 0.0
+            d1 = 0.0
+            d2 = 0.0
+            while k < m and cols_joint[k] == j:
+                s = 0.0
+                for r in range(rows):
+                    s += Jm[r, k] * y[r]
+                if cols_axis[k] == 0:
+                    d0 = s
+                elif cols_axis[k] == 1:
+                    d1 = s
+                else:
+                    d2 = s
+                k += 1
+            step_joint_at(q, j, pre, post, d0, d1, d2)
+            clamp_joint_at(q, j, pre, post, lo, hi)
+        it += 1
+    return it
+
+
 @njit(cache=True, inline="always")
 def set_effector_rotation(parents, q, gq, pre, post, lo, hi, j, target):
     """Turn joint j so that its global rotation is the target's (x y z w at target[3:7]),

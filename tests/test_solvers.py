@@ -53,8 +53,7 @@ def test_rig_has_the_papers_56_degrees_of_freedom(rig: Rig) -> None:
 # (solver, share of effectors that must be within 1 mm): the analytic solver reaches
 # every reachable target; plain DLS, starting far away, can stall against a limit
 @pytest.mark.parametrize(("name", "share"), [
-    pytest.param("analytic", 1.0, marks=pytest.mark.xfail(
-        strict=True, reason="open defect: ~1% of random poses stall above 1 mm (issue 2)")),
+    ("analytic", 1.0),
     ("analytic", 0.95), ("dls", 0.9)])
 def test_reachable_targets_are_reached_within_1mm(rig: Rig, name: str, share: float) -> None:
     q = random_poses(rig, 40, 0.2, seed=1)
