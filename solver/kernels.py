@@ -513,6 +513,43 @@ def dls_scratch(max_cols: int) -> tuple[Array, IntArray, IntArray, Array, Array,
             np.empty(max_cols, dtype=np.int64), np.empty((6, 6)), np.empty(6), np.empty(6))
 
 
+@njit(cache=True, inline="always")
+def dls_step(q, pre, post, lo, hi, Jm, cols_joint, cols_axis, m, rows, A, e, y, lam):
+    """One damped least squares step from the first ``rows`` x ``m`` of the Jacobian Jm:
+    y = (J J^T + lam^2 I)^-1 e, dtheta = J^T y joint by joint, each joint clamped to its
+    limits. False when the system cannot be solved (nothing is changed then)."""
+    for r in range(rows):
+        for c in range(r + 1):
+            s = 0.0
+            for k in range(m):
+                s += Jm[r, k] * Jm[c, k]
+            A[r, c] = s
+            A[c, r] = s
+        A[r, r] += lam * lam
+    if not solve_spd(A, e, rows, y):
+        return False
+    k = 0
+    while k < m:  # the columns of one joint are adjacent
+        j = cols_joint[k]
+        d0 = 0.0
+        d1 = 0.0
+        d2 = 0.0
+        while k < m and cols_joint[k] == j:
+            s = 0.0
+            for r in range(rows):
+                s += Jm[r, k] * y[r]
+            if cols_axis[k] == 0:
+                d0 = s
+            elif cols_axis[k] == 1:
+                d1 = s
+            else:
+                d2 = s
+            k += 1
+        step_joint_at(q, j, pre, post, d0, d1, d2)
+        clamp_joint_at(q, j, pre, post, lo, hi)
+    return True
+
+
 @njit(cache=True)
 def dls_chain(parents, offsets, q, gq, gp, pre, post, lo, hi, dofmask,
               chain, n, target, w_rot, lam, max_iter, eps, scratch):
@@ -536,35 +573,9 @@ def dls_chain(parents, offsets, q, gq, gp, pre, post, lo, hi, dofmask,
                     cols_joint[m] = j
                     cols_axis[m] = ax
                     m += 1
-        for r in range(6):
-            for c in range(r + 1):
-                s = 0.0
-                for k in range(m):
-                    s += Jm[r, k] * Jm[c, k]
-                A[r, c] = s
-                A[c, r] = s
-            A[r, r] += lam * lam
-        if not solve_spd(A, e, 6, y):
+        if not dls_step(q, pre, post, lo, hi, Jm, cols_joint, cols_axis, m, 6, A, e, y,
+                        lam):
             break
-        k = 0
-        while k < m:  # the columns of one joint are adjacent
-            j = cols_joint[k]
-            d0 = 0.0
-            d1 = 0.0
-            d2 = 0.0
-            while k < m and cols_joint[k] == j:
-                s = 0.0
-                for r in range(6):
-                    s += Jm[r, k] * y[r]
-                if cols_axis[k] == 0:
-                    d0 = s
-                elif cols_axis[k] == 1:
-                    d1 = s
-                else:
-                    d2 = s
-                k += 1
-            step_joint_at(q, j, pre, post, d0, d1, d2)
-            clamp_joint_at(q, j, pre, post, lo, hi)
         it += 1
     return it
 
@@ -649,35 +660,9 @@ def dls_tree(parents, offsets, q, gq, gp, pre, post, lo, hi, dofmask, joints, nj
                 cols_joint[m] = j
                 cols_axis[m] = ax
                 m += 1
-        for r in range(rows):
-            for c in range(r + 1):
-                s = 0.0
-                for k in range(m):
-                    s += Jm[r, k] * Jm[c, k]
-                A[r, c] = s
-                A[c, r] = s
-            A[r, r] += lam * lam
-        if not solve_spd(A, e, rows, y):
+        if not dls_step(q, pre, post, lo, hi, Jm, cols_joint, cols_axis, m, rows, A, e, y,
+                        lam):
             break
-        k = 0
-        while k < m:  # the columns of one joint are adjacent
-            j = cols_joint[k]
-            d0 = 0.0
-            d1 = 0.0
-            d2 = 0.0
-            while k < m and cols_joint[k] == j:
-                s = 0.0
-                for r in range(rows):
-                    s += Jm[r, k] * y[r]
-                if cols_axis[k] == 0:
-                    d0 = s
-                elif cols_axis[k] == 1:
-                    d1 = s
-                else:
-                    d2 = s
-                k += 1
-            step_joint_at(q, j, pre, post, d0, d1, d2)
-            clamp_joint_at(q, j, pre, post, lo, hi)
         it += 1
     return it
 
