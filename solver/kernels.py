@@ -416,18 +416,17 @@ def compose_joint(pre, post, sx, ty, sz, out, tmp4a, tmp4b):
 # --- chains: error, Jacobian, damped least squares ---------------------------------------
 
 @njit(cache=True, inline="always")
-def effector_error(gq, gp, eff, target, w_rot, e):
-    """6-vector [target position - position; w_rot * rotation vector to target]; returns
-    its norm."""
+def effector_error(gq, gp, eff, target, w_rot, e, r0=0):
+    """6-vector [target position - position; w_rot * rotation vector to target] into
+    e[r0:r0 + 6]; returns its norm."""
     tq = (target[3], target[4], target[5], target[6])
     rv = tto_rotvec(tmul(tq, tconj(row4(gq, eff))))
-    e[0] = target[0] - gp[eff, 0]
-    e[1] = target[1] - gp[eff, 1]
-    e[2] = target[2] - gp[eff, 2]
-    e[3] = w_rot * rv[0]
-    e[4] = w_rot * rv[1]
-    e[5] = w_rot * rv[2]
-    return math.sqrt(e[0] ** 2 + e[1] ** 2 + e[2] ** 2 + e[3] ** 2 + e[4] ** 2 + e[5] ** 2)
+    s = 0.0
+    for d in range(3):
+        e[r0 + d] = target[d] - gp[eff, d]
+        e[r0 + 3 + d] = w_rot * rv[d]
+        s += e[r0 + d] ** 2 + e[r0 + 3 + d] ** 2
+    return math.sqrt(s)
 
 
 @njit(cache=True, inline="always")
@@ -439,19 +438,19 @@ def joint_axis_world(gq: Array, post: Array, j: int, axis: int) -> Vec3:
 
 @njit(cache=True, inline="always")
 def jacobian_column(gq: Array, gp: Array, post: Array, j: int, axis: int, eff: int,
-                    w_rot: float, Jm: Array, m: int) -> None:
-    """Column m of Jm, eq. 7: [a x (p_eff - p_j); w_rot * a] for limit axis `axis` of
-    joint j."""
+                    w_rot: float, Jm: Array, m: int, r0: int = 0) -> None:
+    """Rows r0..r0+5 of column m of Jm, eq. 7: [a x (p_eff - p_j); w_rot * a] for limit
+    axis `axis` of joint j."""
     a = joint_axis_world(gq, post, j, axis)
     rx = gp[eff, 0] - gp[j, 0]
     ry = gp[eff, 1] - gp[j, 1]
     rz = gp[eff, 2] - gp[j, 2]
-    Jm[0, m] = a[1] * rz - a[2] * ry
-    Jm[1, m] = a[2] * rx - a[0] * rz
-    Jm[2, m] = a[0] * ry - a[1] * rx
-    Jm[3, m] = w_rot * a[0]
-    Jm[4, m] = w_rot * a[1]
-    Jm[5, m] = w_rot * a[2]
+    Jm[r0, m] = a[1] * rz - a[2] * ry
+    Jm[r0 + 1, m] = a[2] * rx - a[0] * rz
+    Jm[r0 + 2, m] = a[0] * ry - a[1] * rx
+    Jm[r0 + 3, m] = w_rot * a[0]
+    Jm[r0 + 4, m] = w_rot * a[1]
+    Jm[r0 + 5, m] = w_rot * a[2]
 
 
 @njit(cache=True, inline="always")
@@ -608,15 +607,7 @@ def tree_error(gq, gp, effs, targets, slots, w_rot, e):
     returns the norm."""
     s = 0.0
     for k in range(effs.shape[0]):
-        eff = effs[k]
-        t = slots[k]
-        tq = (targets[t, 3], targets[t, 4], targets[t, 5], targets[t, 6])
-        rv = tto_rotvec(tmul(tq, tconj(row4(gq, eff))))
-        for d in range(3):
-            e[6 * k + d] = targets[t, d] - gp[eff, d]
-            e[6 * k + 3 + d] = w_rot * rv[d]
-    for r in range(6 * effs.shape[0]):
-        s += e[r] * e[r]
+        s += effector_error(gq, gp, effs[k], targets[slots[k]], w_rot, e, 6 * k) ** 2
     return math.sqrt(s)
 
 
@@ -640,23 +631,12 @@ def dls_tree(parents, offsets, q, gq, gp, pre, post, lo, hi, dofmask, joints, nj
             for ax in range(3):
                 if not dofmask[j, ax]:
                     continue
-                a = joint_axis_world(gq, post, j, ax)
                 for k in range(ne):
-                    eff = effs[k]
-                    r0 = 6 * k
-                    if drives(parents, j, eff):
-                        rx = gp[eff, 0] - gp[j, 0]
-                        ry = gp[eff, 1] - gp[j, 1]
-                        rz = gp[eff, 2] - gp[j, 2]
-                        Jm[r0, m] = a[1] * rz - a[2] * ry
-                        Jm[r0 + 1, m] = a[2] * rx - a[0] * rz
-                        Jm[r0 + 2, m] = a[0] * ry - a[1] * rx
-                        Jm[r0 + 3, m] = w_rot * a[0]
-                        Jm[r0 + 4, m] = w_rot * a[1]
-                        Jm[r0 + 5, m] = w_rot * a[2]
+                    if drives(parents, j, effs[k]):
+                        jacobian_column(gq, gp, post, j, ax, effs[k], w_rot, Jm, m, 6 * k)
                     else:
                         for r in range(6):
-                            Jm[r0 + r, m] = 0.0
+                            Jm[6 * k + r, m] = 0.0
                 cols_joint[m] = j
                 cols_axis[m] = ax
                 m += 1
