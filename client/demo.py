@@ -56,29 +56,38 @@ class DemoResult:
                 "latency_ms": self.latency.summary()}
 
 
-def pin_to_cores(role: str) -> None:
-    """Where each process of the demo runs, when there are at least two cores: the server
-    and the players on the first, the spectators on the others.
+Cores = tuple[int, ...]
 
+
+def demo_cores() -> Cores:
+    """The cores this demo may use: the caller's affinity when the demo starts. Each
+    process is pinned from this set, passed to it, because a process spawned after its
+    parent pinned itself would otherwise inherit (and split) the parent's share only."""
+    return tuple(sorted(os.sched_getaffinity(0))) if hasattr(os, "sched_getaffinity") else ()
+
+
+def pin_to_cores(role: str, cores: Cores) -> None:
+    """Where each process of the demo runs, when there are at least two cores: the server
+    alone on the first, players and spectators on the others.
+
+    The server then reads each player's frame as it arrives, while the players are still
+    sending the rest of the burst (as frames from separate machines would come in); on a
+    core shared with the players it could only start when their whole burst was sent.
     Spectators decode every batch the moment the server writes it; on the server's core
-    each of those wake-ups preempted the server in the middle of its 16 writes (a
-    broadcast took 0.6 ms instead of 0.15). Players send before the server reads, so
-    they share its core without that. Measured with 16 players and 16 spectators, 20 s
-    runs, p99 server (stamped in its handler, as it then was) / capture_to_spectator
-    (ms): unpinned 1.4-1.7 / 4.8-5.5; server alone on a core 1.0-1.1 / 4.0-5.5; this
-    placement 0.85-1.0 / 3.2-4.3.
+    their wake-ups preempted it in the middle of its 16 writes. Measured with 16 players
+    and 16 spectators, 10 s runs, p50 / p99 server (ms): players on the server's core
+    1.19 / 2.09, this placement 0.72 / 1.64.
     """
-    cores = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
     if len(cores) < 2:
         return
-    os.sched_setaffinity(0, cores[1:] if role == "spectators" else cores[:1])
+    os.sched_setaffinity(0, cores[:1] if role == "server" else cores[1:])
 
 
-def _serve_process(pipe: Connection, solver: str) -> None:
+def _serve_process(pipe: Connection, solver: str, cores: Cores) -> None:
     """The server process: report the port, serve until told to stop, report metrics."""
     from server.app import Session, install_fast_loop, run_server
 
-    pin_to_cores("server")
+    pin_to_cores("server", cores)
     install_fast_loop()
 
     async def main() -> dict[str, object]:
@@ -95,10 +104,11 @@ def _serve_process(pipe: Connection, solver: str) -> None:
 class EmbeddedServer:
     """A server process on loopback for the length of a ``with`` block."""
 
-    def __init__(self, solver: str = "analytic") -> None:
+    def __init__(self, solver: str = "analytic", cores: Cores = ()) -> None:
         ctx = mp.get_context("spawn")  # a fresh interpreter: no inherited event loop
         self._pipe, child = ctx.Pipe()
-        self._process = ctx.Process(target=_serve_process, args=(child, solver), daemon=True)
+        self._process = ctx.Process(target=_serve_process, args=(child, solver, cores),
+                                    daemon=True)
         self.port = 0
         self.metrics: dict[str, object] = {}
 
@@ -144,8 +154,8 @@ async def run_players(url: str, players: int, seconds: float,
 
 
 def _players_process(pipe: Connection, url: str, players: int, seconds: float,
-                     motion: Path) -> None:
-    pin_to_cores("players")
+                     motion: Path, cores: Cores) -> None:
+    pin_to_cores("players", cores)
     pipe.recv()  # go: the spectators are in the room
     stats = _run(run_players(url, players, seconds, motion))
     pipe.send([(p.frames_sent, dict(p.errors)) for p in stats])
@@ -153,7 +163,7 @@ def _players_process(pipe: Connection, url: str, players: int, seconds: float,
 
 async def run_clients(url: str, players: int, spectators: int, seconds: float,
                       motion: Path, render: Path | None = None,
-                      render_mode: str = "interpolate"
+                      render_mode: str = "interpolate", cores: Cores = ()
                       ) -> tuple[int, list[SpectatorStats], dict[str, Any]]:
     """Spectators here, players in a process of their own: a player's capture must not
     wait behind spectators decoding (on separate machines it would not). Returns the
@@ -165,7 +175,7 @@ async def run_clients(url: str, players: int, spectators: int, seconds: float,
     ctx = mp.get_context("spawn")
     pipe, child = ctx.Pipe()
     process = ctx.Process(target=_players_process, args=(child, url, players, seconds,
-                                                         motion), daemon=True)
+                                                         motion, cores), daemon=True)
     process.start()
     viewer = (HeadlessViewerProcess(url, ROOM, render, mode=Mode(render_mode))
               if render is not None else None)
@@ -199,14 +209,15 @@ def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
     """The session; with ``render``, a headless viewer also draws the room to PNG files
     there and its ``capture_to_render`` joins the latency stages."""
     motion = motion or builtin_motion_path()
-    cores = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
+    cores = demo_cores()
     try:
-        with EmbeddedServer(solver) as server:
-            pin_to_cores("spectators")  # they run here (see run_clients)
+        with EmbeddedServer(solver, cores) as server:
+            pin_to_cores("spectators", cores)  # they run here (see run_clients)
             frames_sent, spectator_stats, viewed = _run(run_clients(
-                server.url, players, spectators, seconds, motion, render, render_mode))
+                server.url, players, spectators, seconds, motion, render, render_mode,
+                cores))
     finally:
-        if cores is not None:
+        if cores:
             os.sched_setaffinity(0, cores)
     latency = LatencyRecorder.merged(s.latency for s in spectator_stats)
     for stage, samples in viewed.get("samples", {}).items():
