@@ -17,6 +17,8 @@ from collections.abc import Iterable, Mapping
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from protocol.batch import stage_latencies
+
 # the order stages are listed in: along the way a pose travels
 STAGE_ORDER = ("capture_to_server", "solve", "server", "network_to_spectator",
                "capture_to_spectator", "receive_to_render", "capture_to_render",
@@ -48,6 +50,11 @@ class _Samples:
         self.data[self.n] = value
         self.n += 1
 
+    def fill(self, count: int, value: float) -> None:
+        self._reserve(count)
+        self.data[self.n:self.n + count] = value
+        self.n += count
+
     def extend(self, values: NDArray[np.float64]) -> None:
         self._reserve(values.shape[0])
         self.data[self.n:self.n + values.shape[0]] = values
@@ -61,19 +68,58 @@ class LatencyRecorder:
     """Latency samples (seconds) per stage name.
 
     ``add`` takes the dict ``AvatarFrame.latencies`` or ``AvatarBatch.latencies``
-    returns; ``add_values`` a whole array for one stage. ``capacity`` is the initial
-    size of each stage's buffer (90 Hz x 16 avatars x 20 s is ~29k samples; buffers
-    double as needed).
+    returns; ``add_values`` a whole array for one stage; ``add_batch`` a received
+    batch's times. ``capacity`` is the initial size of each stage's buffer (90 Hz x 16
+    avatars x 20 s is ~29k samples; buffers double as needed).
     """
 
     def __init__(self, capacity: int = 4096) -> None:
         self.capacity = capacity
-        self._stages: dict[str, _Samples] = {}
+        self._buffers: dict[str, _Samples] = {}
+        # add_batch's columns: t_capture, t_server_receive, t_solved, t_sent, t_received
+        self._times = tuple(_Samples(capacity) for _ in range(5))
+
+    def add_batch(self, t_capture: NDArray[np.float64], t_server_receive: NDArray[np.float64],
+                  t_solved: NDArray[np.float64], t_sent: float,
+                  t_received: float | None = None) -> None:
+        """A received batch's times (columns of one value per avatar; seconds on the
+        server clock), kept as they are: its stages are computed when read, for all
+        batches at once. Computing five stages per batch as it arrived cost a spectator
+        as much as decoding the batch, on the path of every spectator after it in the
+        same process."""
+        n = t_capture.shape[0]
+        columns = self._times
+        for column, values in zip(columns[:3], (t_capture, t_server_receive, t_solved),
+                                  strict=True):
+            column.extend(values)
+        for column, value in ((columns[3], t_sent), (columns[4], t_received)):
+            column.fill(n, math.nan if value is None else value)
+
+    def _fold(self) -> None:
+        """Turn the batch times into stage samples (rows without a receive time get no
+        receive-side stages)."""
+        t_capture, t_server_receive, t_solved, t_sent, t_received = (
+            c.view() for c in self._times)
+        synced = ~np.isnan(t_received)
+        for rows, received in ((synced, t_received), (~synced, None)):
+            if rows.any():
+                self.add(stage_latencies(t_capture[rows], t_server_receive[rows],
+                                         t_solved[rows], t_sent[rows],
+                                         None if received is None else received[rows]))
+        for c in self._times:
+            c.n = 0
+
+    @property
+    def _stages(self) -> dict[str, _Samples]:
+        """Every stage's samples, the batches' times included."""
+        if self._times[0].n:
+            self._fold()
+        return self._buffers
 
     def _buffer(self, stage: str) -> _Samples:
-        buf = self._stages.get(stage)
+        buf = self._buffers.get(stage)
         if buf is None:
-            buf = self._stages[stage] = _Samples(self.capacity)
+            buf = self._buffers[stage] = _Samples(self.capacity)
         return buf
 
     def add(self, latencies: Mapping[str, float | NDArray[np.float64]]) -> None:

@@ -127,7 +127,8 @@ class Spectator:
         self.latest.update(
             (avatar_id, ReceivedFrame(batch, i, t_local)) for i, avatar_id in enumerate(ids))
         stats.frames_per_avatar.update(ids)
-        stats.latency.add(batch.latencies(t_received=t_server))
+        stats.latency.add_batch(batch.t_capture, batch.t_server_receive, batch.t_solved,
+                                batch.t_sent, t_server)
         stats.frames_received += len(ids)
         stats.batches_received += 1
 

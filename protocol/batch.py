@@ -40,8 +40,7 @@ Array = NDArray[np.float64]
 
 
 def stage_latencies(t_capture: Any, t_server_receive: Any, t_solved: Any, t_sent: Any,
-                    t_received: float | None = None, t_presented: float | None = None,
-                    ) -> dict[str, Any]:
+                    t_received: Any = None, t_presented: Any = None) -> dict[str, Any]:
     """Stage durations in seconds, for one frame's times (floats) or a batch's columns
     (arrays, one value per avatar): the one definition of the stages. Pass viewer times
     already on the server clock."""

@@ -72,6 +72,37 @@ def test_recorders_merge_over_all_samples() -> None:
     assert recs[0].counts() == {"solve": 10}  # the parts are left as they were
 
 
+def test_batch_times_give_the_stages_of_each_frame() -> None:
+    """add_batch keeps raw times and computes stages when read: the same samples as
+    adding each frame's latencies, and no receive-side stages for a batch received
+    before the clock was synced."""
+    rng = np.random.default_rng(5)
+    rec = LatencyRecorder(capacity=4)  # tiny: the time columns grow too
+    expected = LatencyRecorder()
+    for k in range(40):
+        n = int(rng.integers(1, 9))
+        t_capture = 100.0 + k / 90 + rng.uniform(0.0, 0.001, n)
+        t_server_receive = t_capture + rng.uniform(0.0002, 0.002, n)
+        t_solved = t_server_receive + rng.uniform(0.0001, 0.001, n)
+        t_sent = float(t_solved.max()) + 0.00005
+        t_received = None if k % 7 == 3 else t_sent + 0.0004
+        rec.add_batch(t_capture, t_server_receive, t_solved, t_sent, t_received)
+        for i in range(n):
+            expected.add(AvatarFrame(avatar_id=i + 1, seq=k, root=[0.0, 1.0, 0.0],
+                                     rotations=[[0.0, 0.0, 0.0, 1.0]],
+                                     t_capture=t_capture[i],
+                                     t_server_receive=t_server_receive[i],
+                                     t_solved=t_solved[i], t_sent=t_sent
+                                     ).latencies(t_received=t_received))
+        if k == 20:  # reading in the middle, then adding more, loses nothing
+            assert rec.counts()["server"] == expected.counts()["server"]
+    assert rec.counts() == expected.counts()
+    assert rec.counts()["capture_to_spectator"] < rec.counts()["server"]
+    for stage in expected.stages:
+        np.testing.assert_allclose(np.sort(rec.samples(stage)),
+                                   np.sort(expected.samples(stage)), rtol=0, atol=1e-12)
+
+
 def test_empty_recorder() -> None:
     rec = LatencyRecorder()
     assert rec.summary() == {} and rec.counts() == {} and len(rec) == 0
