@@ -10,7 +10,7 @@ from solver.fk import forward_kinematics
 from solver.ik import SOLVERS, PoseBatch, Solver, SolverOptions
 from solver.kernels import compose_joint
 from solver.readers.gltf import load_makehuman
-from solver.rig import Rig, build_rig, within_limits
+from solver.rig import Rig, build_rig, global_pose, within_limits
 
 
 @pytest.fixture(scope="module")
@@ -42,6 +42,31 @@ def effector_errors(rig: Rig, state: PoseBatch, targets: np.ndarray) -> tuple[np
     pos = np.linalg.norm(gp[:, rig.effectors] - targets[..., :3], axis=-1)
     rot = np.degrees(R.angle_between(gq[:, rig.effectors], targets[..., 3:]))
     return pos, rot
+
+
+def test_forward_kinematics_equals_the_joint_by_joint_definition(rig: Rig) -> None:
+    """The compiled batched FK (and global_pose, which is it for one pose) against the
+    definition written out: each joint's global rotation is its parent's times its
+    local one; its position is the parent's plus the offset turned by the parent."""
+    sk = rig.skeleton
+    rng = np.random.default_rng(11)
+    q = R.normalize(rng.normal(size=(3, sk.num_joints, 4)))
+    root = rng.normal(size=(3, 3))
+    offsets = sk.offsets[None] * rng.uniform(0.8, 1.2, size=(3, sk.num_joints, 1))
+    gq, gp = forward_kinematics(sk, q, root, offsets)
+    for b in range(3):
+        want_q = np.empty((sk.num_joints, 4))
+        want_p = np.empty((sk.num_joints, 3))
+        want_q[0], want_p[0] = q[b, 0], root[b]
+        for j in range(1, sk.num_joints):
+            p = sk.parents[j]
+            want_q[j] = R.mul(want_q[p], q[b, j])
+            want_p[j] = want_p[p] + R.rotate(want_q[p], offsets[b, j])
+        np.testing.assert_allclose(gq[b], want_q, atol=1e-12)
+        np.testing.assert_allclose(gp[b], want_p, atol=1e-12)
+        one_q, one_p = global_pose(sk.with_offsets(offsets[b]), q[b], root[b])
+        np.testing.assert_allclose(one_q, want_q, atol=1e-12)
+        np.testing.assert_allclose(one_p, want_p, atol=1e-12)
 
 
 def test_rig_has_the_papers_56_degrees_of_freedom(rig: Rig) -> None:
