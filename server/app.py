@@ -123,6 +123,7 @@ class Session:
             if old is not None and old is not ws:
                 await old.close(1000, "reconnected elsewhere")
         avatar.connected = True
+        avatar.connection = ws if isinstance(ws, ArrivalStamps) else None
         self._owners[avatar.avatar_id] = ws
         await ws.send(encode(Welcome(protocol_version=PROTOCOL_VERSION,
                                      connection_id=conn_id, avatar_id=avatar.avatar_id,
@@ -153,6 +154,7 @@ class Session:
             if self._owners.get(avatar.avatar_id) is ws:
                 del self._owners[avatar.avatar_id]
                 avatar.connected = False
+                avatar.connection = None
                 self._forget_later(room, avatar)
 
     def _forget_later(self, room: Room, avatar: Avatar) -> None:

@@ -2,9 +2,10 @@
 
 Frames are solved as they arrive, a burst at a time: the first tracker frame after a solve
 schedules the next one with ``call_soon``; when it runs and frames came in during that pass
-of the event loop, it lets the loop pass once more (the burst is still arriving: players'
-headsets tick together), and it solves as soon as a pass brings nothing new, or at the
-latest COALESCE_MAX_S after the burst's first frame. There is no fixed tick to wait for: a
+of the event loop, or a player's frame has been read from its socket but not yet handled,
+it lets the loop pass once more (the burst is still arriving: players' headsets tick
+together), and it solves as soon as a pass brings nothing new, or at the latest
+COALESCE_MAX_S after the burst's first frame. There is no fixed tick to wait for: a
 lone frame is solved on the next pass. The batch is solved in one call, turned into one
 AvatarBatch, encoded once and offered to every spectator's latest-wins outbox.
 """
@@ -20,6 +21,7 @@ import numpy as np
 from websockets.asyncio.server import ServerConnection, broadcast
 
 from protocol import AvatarBatch, AvatarFrame, AvatarInfo, AvatarRoster, TrackerFrame, encode
+from protocol.arrivals import ArrivalStamps
 from protocol.codec import encode_avatar_batch
 from server.avatars import AvatarSolver
 from server.clock import now
@@ -67,6 +69,9 @@ class Avatar:
     token: str | None
     info: AvatarInfo | None = None  # the calibrated skeleton, once calibrated
     connected: bool = True
+    # its player's live connection: its arrival stamps tell that a frame of this avatar
+    # reached the process and waits for its handler (see Room._solve_when_burst_ends)
+    connection: ArrivalStamps | None = None
 
 
 # a spectator whose socket holds more unsent bytes than this is slow: its frames go
@@ -96,6 +101,7 @@ class Room:
     avatars: dict[int, Avatar] = field(default_factory=dict)
     spectators: dict[int, Spectator] = field(default_factory=dict)
     _pending: dict[int, tuple[TrackerFrame, float]] = field(default_factory=dict)
+    coalesce_max_s: float = COALESCE_MAX_S
     _scheduled: bool = False
     _arrived: bool = False  # a frame came in during the current pass of the event loop
     _burst_start: float = 0.0
@@ -135,7 +141,11 @@ class Room:
             asyncio.get_running_loop().call_soon(self._solve_when_burst_ends)
 
     def _solve_when_burst_ends(self) -> None:
-        if self._arrived and now() - self._burst_start < COALESCE_MAX_S:
+        # a frame still arriving: submitted in this pass, or read from its socket and
+        # waiting for its handler's turn (the handlers run a pass after the reads)
+        arriving = self._arrived or any(a.connection is not None and a.connection.arrivals
+                                        for a in self.avatars.values())
+        if arriving and now() - self._burst_start < self.coalesce_max_s:
             self._arrived = False
             asyncio.get_running_loop().call_soon(self._solve_when_burst_ends)
             return

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import asyncio
 import math
+from collections import deque
 from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
 from pathlib import Path
+from types import SimpleNamespace
 
 import msgpack
 import numpy as np
@@ -24,6 +26,7 @@ from protocol import (
     TrackerFrame,
     Welcome,
     decode,
+    decode_client,
     dequantize_rotations,
     encode,
     quantize_rotations,
@@ -31,7 +34,10 @@ from protocol import (
 )
 from server.app import Session
 from server.avatars import AvatarSolver
+from server.clock import now
+from server.metrics import Metrics
 from server.outbox import Outbox
+from server.room import Avatar, Room
 from solver.calibration import calibrate
 from solver.ik import PoseBatch, Solver
 from solver.motion import ViveRecording
@@ -260,6 +266,39 @@ def test_unknown_version_is_refused_at_hello(session: Session) -> None:
             assert "99" in err.message
 
     run(test, session)
+
+
+def test_a_burst_waits_for_a_frame_read_but_not_yet_handled(session: Session,
+                                                          recording: ViveRecording) -> None:
+    """The handlers of frames read in one pass of the event loop run in the next: a
+    batch stays open while a player's frame is read (its arrival stamped) but not yet
+    submitted, so that a burst is solved as one batch, and closes at the window's end
+    even if that frame never comes."""
+    rec = recording
+
+    async def burst(submit_second: bool) -> tuple[int, int]:
+        room = Room("r", AvatarSolver(session.rig), Metrics(), coalesce_max_s=0.05)
+        for a in (1, 2):
+            room.avatars[a] = avatar = Avatar(a, f"player {a}", None)
+            room.calibrate(avatar, rec.devices, poses(rec, 0))
+        # what a connection holds once the second player's frame is read from its socket
+        room.avatars[2].connection = SimpleNamespace(arrivals=deque([now()]))
+        room.submit(1, decode_client(tracker(rec, 5)), now())
+        for _ in range(5):  # passes of the loop: the read frame keeps the batch open
+            await asyncio.sleep(0)
+        open_then = room.metrics.batches
+        if submit_second:  # its handler runs: the burst is complete
+            room.avatars[2].connection.arrivals.popleft()
+            room.submit(2, decode_client(tracker(rec, 6)), now())
+            for _ in range(3):
+                await asyncio.sleep(0)
+        else:
+            await asyncio.sleep(0.1)  # past the window
+        assert room.metrics.batches == 1
+        return open_then, room.metrics.frames_solved
+
+    assert asyncio.run(burst(True)) == (0, 2)  # one batch of both
+    assert asyncio.run(burst(False)) == (0, 1)  # the window ended it
 
 
 def test_outbox_keeps_the_latest_frame_per_avatar_for_a_stalled_receiver() -> None:
