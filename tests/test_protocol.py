@@ -43,7 +43,12 @@ from protocol import (
 )
 from protocol.batch import avatar_batch_from_wire
 from protocol.measure import sample_avatar_batch, sample_tracker_frame
-from protocol.validation import MAX_AVATARS
+from protocol.validation import (
+    MAX_AVATARS,
+    MAX_POSITION_M,
+    QUAT_NORM_TOLERANCE,
+    device_poses,
+)
 from solver.motion import DRIVING_DEVICES, VIVE_DEVICES
 
 RNG = np.random.default_rng(7)
@@ -412,6 +417,39 @@ def test_non_unit_quaternion_names_the_device_and_norm() -> None:
             "row 3 (right_hand) quaternion", "norm 1.01", "within 0.001")
     p[3, 3:] = 0.0
     rejects(msgpack.packb({**frame, "poses": p.tobytes()}), "row 3 (right_hand)", "norm 0")
+
+
+_POSE_VALUES = st.one_of(st.floats(-2.0, 2.0), st.sampled_from(
+    [0.0, 1.0, -1.0, 0.5, 1.0005, 0.9995, 999.9, 1000.1, -1e300, float("nan"),
+     float("inf")]))
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.lists(st.lists(_POSE_VALUES, min_size=7, max_size=7), min_size=1, max_size=10),
+       st.booleans())
+def test_device_poses_follow_their_definition(rows: list[list[float]], unit: bool) -> None:
+    """Accepted exactly when every position is within MAX_POSITION_M and every quaternion
+    within QUAT_NORM_TOLERANCE of unit norm (as squared norms, 2x the tolerance); the
+    result has every quaternion normalised, bit for bit the input when all are unit."""
+    poses = np.array(rows, dtype=np.float64)
+    with np.errstate(all="ignore"):
+        if unit:  # mostly valid rows, some already unit to the last bit
+            q = poses[:, 3:] + 0.1
+            poses[:, 3:] = q / np.linalg.norm(q, axis=1, keepdims=True)
+        p2 = (poses[:, :3] ** 2).sum(axis=1)
+        q2 = (poses[:, 3:] ** 2).sum(axis=1)
+        valid = bool(np.all(p2 <= MAX_POSITION_M**2)
+                     and np.all(np.abs(q2 - 1.0) <= 2 * QUAT_NORM_TOLERANCE))
+    if not valid:
+        with pytest.raises(ValueError):
+            device_poses(poses)
+        return
+    out = device_poses(poses)
+    np.testing.assert_array_equal(out[:, :3], poses[:, :3])
+    np.testing.assert_allclose(np.linalg.norm(out[:, 3:], axis=1), 1.0, atol=1e-15)
+    np.testing.assert_allclose(out[:, 3:], poses[:, 3:] / np.sqrt(q2)[:, None], atol=1e-15)
+    if np.abs(q2 - 1.0).max() <= 1e-12:
+        np.testing.assert_array_equal(out, poses)
 
 
 def test_positions_beyond_the_limit() -> None:
