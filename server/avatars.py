@@ -58,6 +58,7 @@ class AvatarSolver:
         self._offsets = np.empty((capacity, J, 3))  # each avatar's bone lengths
         self._mount_p = np.empty((capacity, E, 3))  # driving devices' mounts
         self._mount_q = np.empty((capacity, E, 4))
+        self._targets = np.empty((capacity, E, 7))  # staged: each avatar's next targets
 
     def warm_up(self) -> None:
         """Solve once now: loading the compiled solver takes ~0.2 s, not the first frame's."""
@@ -73,7 +74,8 @@ class AvatarSolver:
         free = next((s for s in range(len(self._roots)) if s not in used), None)
         if free is None:  # grow: double every array
             free = len(self._roots)
-            for name in ("_rotations", "_roots", "_offsets", "_mount_p", "_mount_q"):
+            for name in ("_rotations", "_roots", "_offsets", "_mount_p", "_mount_q",
+                         "_targets"):
                 a = getattr(self, name)
                 setattr(self, name, np.concatenate([a, np.empty_like(a)]))
         return free
@@ -97,36 +99,31 @@ class AvatarSolver:
         self.calibrations.pop(avatar_id, None)
         self._slot.pop(avatar_id, None)
 
-    def solve(self, frames: list[tuple[int, tuple[str, ...], Array]]) -> PoseBatch:
-        """Solve the avatars of ``frames`` [(avatar id, roles, poses (D, 7): position |
-        quaternion)] as one batch, each warm-started from its last pose; their new poses
-        in the order asked."""
-        B = len(frames)
-        slots = np.empty(B, dtype=np.intp)
-        for b, (avatar_id, _, _) in enumerate(frames):
-            slot = self._slot.get(avatar_id)
-            if slot is None:
-                raise NotCalibratedError(f"avatar {avatar_id} has not been calibrated: "
-                                         "send a calibrate message (T-pose) first")
-            slots[b] = slot
-        device = self._driving_poses(frames)
-        E = len(EFFECTORS)
-        targets = np.empty((B, E, 7))  # C order: the kernel writes through reshape views
-        bone_targets(device.reshape(B * E, 7), self._mount_p[slots].reshape(B * E, 3),
-                     self._mount_q[slots].reshape(B * E, 4), targets.reshape(B * E, 7))
+    def stage(self, avatar_id: int, roles: tuple[str, ...], poses: Array) -> None:
+        """Take a frame's driving devices (poses (D, 7): position | quaternion) as the
+        avatar's targets for its next solve; a newer frame replaces an older one. A room
+        stages each frame as it arrives, while the rest of the burst is still coming in,
+        so the solve itself only gathers rows."""
+        slot = self._slot.get(avatar_id)
+        if slot is None:
+            raise NotCalibratedError(f"avatar {avatar_id} has not been calibrated: "
+                                     "send a calibrate message (T-pose) first")
+        device = poses[driving_indices(roles)]  # a new (E, 7) array, C order
+        bone_targets(device, self._mount_p[slot], self._mount_q[slot], self._targets[slot])
+
+    def solve_staged(self, avatar_ids: list[int]) -> PoseBatch:
+        """Solve these avatars (each staged) as one batch, each warm-started from its last
+        pose; their new poses in the order asked."""
+        slots = np.array([self._slot[a] for a in avatar_ids], dtype=np.intp)
         state = PoseBatch(self._rotations[slots], self._roots[slots])
-        self.solver.solve(targets, state, self._offsets[slots])
+        self.solver.solve(self._targets[slots], state, self._offsets[slots])
         self._rotations[slots] = state.rotations
         self._roots[slots] = state.root
         return state
 
-    @staticmethod
-    def _driving_poses(frames: list[tuple[int, tuple[str, ...], Array]]) -> Array:
-        """(B, E, 7) poses of the driving devices; one gather when every frame has the
-        same roles in the same order (as a room of the same client software sends)."""
-        roles = frames[0][1]
-        if all(f[1] == roles for f in frames):
-            gathered = np.stack([f[2] for f in frames])[:, driving_indices(roles)]
-        else:
-            gathered = np.stack([poses[driving_indices(r)] for _, r, poses in frames])
-        return np.ascontiguousarray(gathered)  # reshaped below: must be a view, not a copy
+    def solve(self, frames: list[tuple[int, tuple[str, ...], Array]]) -> PoseBatch:
+        """Solve the avatars of ``frames`` [(avatar id, roles, poses (D, 7): position |
+        quaternion)] as one batch: ``stage`` each, then ``solve_staged``."""
+        for avatar_id, roles, poses in frames:
+            self.stage(avatar_id, roles, poses)
+        return self.solve_staged([avatar_id for avatar_id, _, _ in frames])

@@ -127,7 +127,10 @@ class Room:
         return avatar_id in self.solver.calibrations
 
     def submit(self, avatar_id: int, frame: TrackerFrame, t_received: float) -> None:
-        """Queue a player's frame (latest wins) and make sure a solve is coming."""
+        """Queue a player's frame (latest wins) and make sure a solve is coming. Its
+        targets are computed now, while the rest of the burst is still arriving; a
+        ValueError (a driving device missing) rejects this frame alone."""
+        self.solver.stage(avatar_id, frame.roles, frame.poses)
         if avatar_id in self._pending:
             self.metrics.frames_superseded += 1
         self._pending[avatar_id] = (frame, t_received)
@@ -167,7 +170,7 @@ class Room:
         self._pending.clear()
         if not pending:
             return
-        solved = self.solver.solve([(a, f.roles, f.poses) for a, f, _ in pending])
+        solved = self.solver.solve_staged([a for a, _, _ in pending])
         t_solved = now()
         shared = SharedBatch([a for a, _, _ in pending], [f.seq for _, f, _ in pending],
                              solved.root, solved.rotations,

@@ -214,12 +214,16 @@ def _bad_messages(rec: ViveRecording) -> list[tuple[str, bytes, str]]:
     nan[2, 1] = math.nan
     nan_frame = {**frame, "poses": nan.astype("<f8").tobytes()}
     huge = {**frame, "padding": b"x" * 20000}
+    # valid as a message, but the solver needs both feet: rejected alone, as it arrives
+    footless = {**frame, "roles": list(rec.devices[:-2]),
+                "poses": poses(rec, 3)[:-2].astype("<f8").tobytes()}
     old = {"type": "hello", "protocol_version": 99, "role": "player", "room": "x",
            "display_name": "old"}
     return [("not_msgpack", b"\xc1 not msgpack", "msgpack"),
             ("invalid", msgpack.packb(wrong_type), "seq"),
             ("invalid", msgpack.packb(nan_frame), "nan"),
             ("too_large", msgpack.packb(huge), "bytes"),
+            ("invalid", msgpack.packb(footless), "lacks the driving devices"),
             ("unsupported_version", msgpack.packb(old), "99")]
 
 
