@@ -21,12 +21,14 @@ from typing import Literal
 
 from pydantic import ValidationError
 from websockets.asyncio.client import ClientConnection, connect
+from websockets.asyncio.server import broadcast
 from websockets.exceptions import (
     ConnectionClosed,
     InvalidHandshake,
     InvalidStatus,
     InvalidURI,
 )
+from websockets.protocol import State
 
 from client.sources.base import now
 from protocol import (
@@ -47,6 +49,9 @@ from protocol import (
 )
 from protocol.arrivals import ArrivalStamps, arrival_time
 from protocol.validation import protocol_error
+
+# unsent bytes beyond which a player's frames are dropped rather than queued: ~20 frames
+SEND_BUFFER_LIMIT = 16 * 1024
 
 log = logging.getLogger(__name__)
 
@@ -219,6 +224,18 @@ class Session:
             await self.ws.send(data)
         except ConnectionClosed as exc:
             raise SessionError(self.url, _closed_reason(exc, self.last_error)) from None
+
+    def send_now(self, data: bytes) -> bool:
+        """Write a message already encoded at once, without waiting (a player's frame
+        goes out the moment its pose is read); False if it was dropped because the
+        connection is not open or the server has not read the frames before (over
+        SEND_BUFFER_LIMIT unsent bytes: a newer frame is worth more than a queued one)."""
+        transport = self.ws.transport
+        if transport is None or transport.get_write_buffer_size() > SEND_BUFFER_LIMIT \
+                or self.ws.protocol.state is not State.OPEN:
+            return False
+        broadcast([self.ws], data)  # websockets' synchronous write (no await, no lock)
+        return True
 
     async def receive(self) -> tuple[Message, float]:
         """The next message other than a Pong, and ``now()`` right when it arrived.

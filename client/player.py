@@ -7,8 +7,8 @@ the server are logged and counted, not fatal: the next frame may well be fine.
 
 The message builders (``device_poses``, ``calibrate_message``, ``tracker_frame``) are pure,
 so tests check them without a server. Frames go out through ``encode_tracker_frame``, the
-same bytes as ``encode(tracker_frame(...))`` without building the model: the capture's
-way to the socket stays short.
+same bytes as ``encode(tracker_frame(...))`` without building the model, and are written
+at once (``Session.send_now``): the capture's way to the socket stays short.
 """
 
 from __future__ import annotations
@@ -71,9 +71,10 @@ class Ticker:
     already due, at once, and the missed ones are skipped (never a burst of catch-up
     frames, which would only be stale poses).
 
-    One Ticker may be shared by many players in one process: every waiter of a slot
-    awaits the same future, resolved by one timer, so they all wake in the same event
-    loop iteration and their frames reach the server together, to be solved in one batch.
+    One Ticker may be shared by many players in one process: the waiters of a slot are
+    woken by one timer, in the same event loop iteration, so their frames reach the
+    server together, to be solved in one batch. Each waits on its own future, so that
+    one being cancelled leaves the others waiting.
     """
 
     def __init__(self, rate_hz: float, start: float | None = None,
@@ -84,7 +85,7 @@ class Ticker:
         self.period = 1.0 / self.rate_hz
         self.start = start  # None: set by the first wait
         self.clock = clock
-        self._slots: dict[int, asyncio.Future[int]] = {}
+        self._slots: dict[int, list[asyncio.Future[int]]] = {}
 
     def slot_time(self, k: int) -> float:
         """When slot k is due; k * period, not a running sum, so no rounding drift."""
@@ -113,18 +114,19 @@ class Ticker:
         if delay <= 0.0:
             await asyncio.sleep(0)  # late: go at once, but let the others run first
             return k
-        fut = self._slots.get(k)
-        if fut is None:
-            loop = asyncio.get_running_loop()
-            fut = self._slots[k] = loop.create_future()
+        loop = asyncio.get_running_loop()
+        waiters = self._slots.get(k)
+        if waiters is None:
+            waiters = self._slots[k] = []
             loop.call_later(delay, self._fire, k)
-        # shield: one waiter being cancelled must not cancel the slot for the others
-        return await asyncio.shield(fut)
+        fut = loop.create_future()
+        waiters.append(fut)
+        return await fut
 
     def _fire(self, k: int) -> None:
-        fut = self._slots.pop(k, None)
-        if fut is not None and not fut.done():
-            fut.set_result(k)
+        for fut in self._slots.pop(k, ()):
+            if not fut.done():  # a cancelled waiter's future is done
+                fut.set_result(k)
 
 
 # --------------------------------------------------------------------------- player
@@ -135,6 +137,7 @@ class PlayerStats:
     frames_sent: int = 0
     calibrations_sent: int = 0
     slots_skipped: int = 0  # schedule slots missed because the loop ran late
+    frames_dropped: int = 0  # frames not sent: the server had not read the ones before
     errors: Counter[str] = field(default_factory=Counter)
     last_error: str | None = None  # "code: message" of the latest Error
     connection_id: int | None = None
@@ -223,11 +226,13 @@ class Player:
             if t_first is None:
                 t_first = sample.t_capture
                 deadline = t_first + seconds if seconds is not None else math.inf
-            await session.send_encoded(encode_tracker_frame(
-                self._seq, sample.roles, device_poses(sample), sample.t_capture,
-                session.clock.offset))
-            self._seq += 1
-            self.stats.frames_sent += 1
+            if session.send_now(encode_tracker_frame(
+                    self._seq, sample.roles, device_poses(sample), sample.t_capture,
+                    session.clock.offset)):
+                self._seq += 1
+                self.stats.frames_sent += 1
+            else:  # the server is not keeping up (or going): this pose is stale next time
+                self.stats.frames_dropped += 1
             self.stats.seconds = sample.t_capture - t_first
 
     async def _send_calibration(self, session: Session) -> None:

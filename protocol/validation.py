@@ -194,7 +194,7 @@ def _explain_quaternions(q: NDArray[np.float64], norm2: NDArray[np.float64],
 # read-only, any layout: writable arrays convert to it, wire buffers are it
 @njit(types.boolean(types.Array(types.float64, 2, "A", readonly=True), types.float64[:, ::1]),
       cache=True)
-def _checked_poses(poses: NDArray[np.float64], out: NDArray[np.float64]) -> bool:
+def checked_poses(poses: NDArray[np.float64], out: NDArray[np.float64]) -> bool:
     """Copy (D, 7) pose rows into ``out`` with normalised quaternions (all rows, when any
     is off unit by more than _UNIT_EXACT), or return False if a position is beyond
     MAX_POSITION_M or a quaternion off unit by more than the tolerance (NaN fails both).
@@ -225,7 +225,7 @@ def device_poses(poses: NDArray[np.float64], labels: Sequence[str] | None = None
     on failure the row-by-row checks explain what was wrong.
     """
     out = np.empty((poses.shape[0], 7))  # new: the wire buffer is read-only, and callers
-    if not _checked_poses(poses, out):  # keep their arrays
+    if not checked_poses(poses, out):  # keep their arrays
         check_positions(poses[:, :3], labels)
         q = poses[:, 3:]
         _explain_quaternions(q, np.einsum("ij,ij->i", q, q), labels)

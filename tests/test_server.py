@@ -16,6 +16,7 @@ import pytest
 from conftest import serving
 from websockets.asyncio.client import ClientConnection, connect
 
+from client.connection import SEND_BUFFER_LIMIT, make_hello, open_session
 from protocol import (
     PROTOCOL_VERSION,
     AvatarBatch,
@@ -303,6 +304,35 @@ def test_a_burst_waits_for_a_frame_read_but_not_yet_handled(session: Session,
 
     assert asyncio.run(burst(True)) == (0, 2)  # one batch of both
     assert asyncio.run(burst(False)) == (0, 1)  # the window ended it
+
+
+def test_a_player_drops_frames_rather_than_queue_them_behind_a_stalled_server(
+        session: Session, recording: ViveRecording) -> None:
+    """send_now writes at once while the server keeps up; when the server stops reading,
+    the frames wait in the kernel, then in the transport, and past SEND_BUFFER_LIMIT the
+    player drops new frames instead of queueing stale poses; after close, nothing is
+    sent."""
+    async def test(url: str) -> None:
+        player = await open_session(url, make_hello(url, "player", "stall", "p"))
+        assert player.send_now(calibration(recording))
+        assert player.avatar_id is not None
+        server_side = session._owners[player.avatar_id]
+        assert server_side.transport is not None
+        server_side.transport.pause_reading()  # a server that stops reading this player
+        frame = tracker(recording, 5)
+        sent = 0
+        while player.send_now(frame):  # the kernel's buffers fill, then the transport's
+            sent += 1
+            if sent % 100 == 0:
+                await asyncio.sleep(0)
+            assert sent < 100_000, "the player never noticed the stalled server"
+        assert player.ws.transport.get_write_buffer_size() > SEND_BUFFER_LIMIT
+        assert not player.send_now(frame)
+        server_side.transport.resume_reading()
+        await player.close()
+        assert not player.send_now(frame)
+
+    run(test, session)
 
 
 def test_outbox_keeps_the_latest_frame_per_avatar_for_a_stalled_receiver() -> None:
