@@ -20,8 +20,6 @@ from collections.abc import Callable
 import numba
 from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
-from websockets.frames import Frame, Opcode
-from websockets.protocol import Event
 
 from protocol import (
     PROTOCOL_VERSION,
@@ -128,7 +126,7 @@ class Session:
         avatar.connected = True
         avatar.connection = ws if isinstance(ws, ArrivalStamps) else None
         self._owners[avatar.avatar_id] = ws
-        if isinstance(ws, TimestampedServerConnection):
+        if isinstance(ws, ArrivalStamps):
             ws.fast_path = functools.partial(self._tracker_frame_now, room, avatar)
         await ws.send(encode(Welcome(protocol_version=PROTOCOL_VERSION,
                                      connection_id=conn_id, avatar_id=avatar.avatar_id,
@@ -156,7 +154,7 @@ class Session:
         except ConnectionClosed:
             pass
         finally:
-            if isinstance(ws, TimestampedServerConnection):
+            if isinstance(ws, ArrivalStamps):
                 ws.fast_path = None
             if self._owners.get(avatar.avatar_id) is ws:
                 del self._owners[avatar.avatar_id]
@@ -167,7 +165,7 @@ class Session:
     def _tracker_frame_now(self, room: Room, avatar: Avatar,
                            data: bytes | bytearray | memoryview,
                            t_received: float) -> bool:
-        """A player's message as its bytes are read (``TimestampedServerConnection``): a
+        """A player's message as its bytes are read (``ArrivalStamps.fast_path``): a
         valid tracker frame of a calibrated avatar goes to the room at once, without
         waiting for the handler task's turn. Anything else (other messages, anything
         wrong) returns False and takes the handler's way, which replies to it."""
@@ -277,24 +275,10 @@ async def run_server(host: str, port: int, session: Session | None = None,
 class TimestampedServerConnection(ArrivalStamps, ServerConnection):
     """A frame is received when its bytes reach this process (``protocol.arrivals``),
     not when its handler gets to it: time spent behind the rest of a burst or a solve is
-    the server's.
-
-    ``fast_path`` (set for a player once joined) sees each whole binary message as it
-    is read, with its arrival time, and returns True if it handled it; the handler task
-    gets the rest. Tracker frames so skip the queue and the task switch, ~10 us each of
-    the server's time per frame. Only while nothing waits in the queue: messages are
-    handled in the order they came.
-    """
+    the server's. A player's tracker frames take its ``fast_path`` (set once joined):
+    no queue and no task switch, ~10 us of the server's time per frame."""
 
     clock = staticmethod(now)
-    fast_path: Callable[[bytes | bytearray | memoryview, float], bool] | None = None
-
-    def process_event(self, event: Event) -> None:
-        if (self.fast_path is not None and isinstance(event, Frame)
-                and event.opcode is Opcode.BINARY and event.fin and not self.arrivals
-                and self.fast_path(event.data, self.clock())):
-            return
-        super().process_event(event)
 
 
 def install_fast_loop() -> bool:
