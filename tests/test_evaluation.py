@@ -73,6 +73,43 @@ def test_bvh_eval_follows_a_body_that_travels(shared_data: SharedData, name: str
     assert result.position_error_mm["Hips"] < 1.0  # the pelvis tracker is met exactly
 
 
+def test_a_knee_tracker_rides_a_share_of_the_knee_bend() -> None:
+    """Its position turns about the knee by KNEE_BEND_SHARE of the knee's flexion, its
+    rotation stays the thigh's; at the calibration pose it is where it was recorded."""
+    from solver.calibration import KNEE_BEND_SHARE, Calibration, Mount, _partly_bent
+    from solver.readers.gltf import load_makehuman
+    from solver.rig import build_rig, global_pose
+
+    rig = build_rig(load_makehuman().skeleton)
+    knee = rig.role("shin_l")
+    thigh = rig.skeleton.parents[knee]
+    flexion = 1.2  # radians about the knee's limit x axis
+    pose = rig.canonical.copy()
+    pose[knee] = R.mul(R.mul(rig.pre[knee], R.from_axis_angle([1.0, 0.0, 0.0], flexion)),
+                       rig.post[knee])
+    gq, gp = global_pose(rig.skeleton, pose)
+    straight = _partly_bent(rig, knee, gq[thigh], gq[knee], 0.0)
+    canon_gq, _ = global_pose(rig.skeleton, rig.canonical)
+    assert R.angle_between(R.mul(R.conjugate(gq[thigh]), straight),
+                           R.mul(R.conjugate(canon_gq[thigh]), canon_gq[knee])) < 1e-9
+    half = _partly_bent(rig, knee, gq[thigh], gq[knee], 0.5)
+    assert abs(R.angle_between(half, straight) - flexion / 2) < 1e-9
+    assert abs(R.angle_between(half, gq[knee]) - flexion / 2) < 1e-9
+    np.testing.assert_allclose(_partly_bent(rig, knee, gq[thigh], gq[knee], 1.0), gq[knee],
+                               atol=1e-12)
+
+    offset = np.array([0.0, 0.09, 0.05])  # a hand above the knee, in front
+    mount = Mount(knee, offset, np.array([0.0, 0.0, 0.0, 1.0]), bend_share=KNEE_BEND_SHARE)
+    cal = Calibration(rig, rig.skeleton.offsets, rig.canonical, rig.skeleton.offsets[0],
+                      {"left_knee": mount}, 1.0)
+    pos, rot = cal.predict(gq[None], gp[None], ("left_knee",))
+    frame = _partly_bent(rig, knee, gq[thigh], gq[knee], KNEE_BEND_SHARE)
+    np.testing.assert_allclose(pos[0, 0], gp[knee] + R.rotate(frame, offset), atol=1e-12)
+    assert R.angle_between(rot[0, 0], gq[thigh]) < 1e-9  # it turns with the thigh
+    # the strap has turned about the knee by the share of the flexion, no more
+    assert abs(R.angle_between(frame, straight) - KNEE_BEND_SHARE * flexion) < 1e-9
+
+
 def test_a_forearm_tracker_follows_a_share_of_the_forearm_twist() -> None:
     from solver.calibration import _partly_twisted
     from solver.readers.gltf import load_makehuman
