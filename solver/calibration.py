@@ -28,16 +28,16 @@ from solver.kernels import bone_targets
 from solver.motion import DRIVING_DEVICES
 from solver.rig import EFFECTORS, Rig, global_pose
 
-# device -> candidate bones (roles); the nearest candidate at calibration wins. A forearm
-# tracker is strapped to the forearm, whatever the template's elbow says: in the recordings
-# it keeps its distance to the wrist (std 6-11 mm) while the nearest-bone rule put it on the
-# upper arm in 7 of 10 files (model elbow beyond the real one) and lost the elbow's bend.
-DEVICE_BONES: dict[str, tuple[str, ...]] = {
-    "head": ("head",), "hip": ("pelvis",),
-    "left_hand": ("hand_l",), "right_hand": ("hand_r",),
-    "left_foot": ("foot_l",), "right_foot": ("foot_r",),
-    "left_forearm": ("forearm_l",), "right_forearm": ("forearm_r",),
-    "left_knee": ("shin_l",), "right_knee": ("shin_r",),  # the knee joint: see below
+# device -> the bone (role) it is mounted on. A forearm tracker is strapped to the
+# forearm, whatever the template's elbow says: in the recordings it keeps its distance to
+# the wrist (std 6-11 mm), while a nearest-bone rule put it on the upper arm in 7 of 10
+# files (model elbow beyond the real one) and lost the elbow's bend. A knee tracker is
+# mounted at the knee joint and rides around it (KNEE_BEND_SHARE).
+DEVICE_BONES: dict[str, str] = {
+    "head": "head", "hip": "pelvis", "left_hand": "hand_l", "right_hand": "hand_r",
+    "left_foot": "foot_l", "right_foot": "foot_r",
+    "left_forearm": "forearm_l", "right_forearm": "forearm_r",
+    "left_knee": "shin_l", "right_knee": "shin_r",
 }
 # driving device of each effector, in rig.EFFECTORS order
 EFFECTOR_DEVICES = ("head", "hip", "left_hand", "right_hand", "left_foot", "right_foot")
@@ -81,11 +81,12 @@ TWIST_SHARE_DEVICES = ("left_forearm", "right_forearm")
 # Share of the knee's bend that a knee tracker's position follows. Strapped on the thigh
 # a hand above the knee, it turns with the thigh, but as the knee flexes the strap rides
 # around the joint with the soft tissue under it: its position is taken about the knee
-# in the thigh's frame turned by this share of the knee's rotation, its rotation stays
-# the thigh's. Read off these recordings, like the constants above: 0 (rigid on the
-# thigh) -> 0.25 took the knee trackers from 50.4 to 46.2 mm (sitting 107/109 -> 86/91,
-# kicking, knee_flexion and squats 8-10 mm better each, the clips with little flexion
-# 2-6 mm worse), Vive held-out 43.7 -> 41.8 mm; 0.2 and 0.35 give 42.0. Following the
+# in the thigh's frame turned by this share of the knee's bend away from the straight
+# leg, its rotation stays the thigh's. Read off these recordings, like the constants
+# above: 0 (rigid on the thigh) -> 0.25 took the knee trackers from 50.4 to 46.2 mm
+# (sitting 107/109 -> 86/91, kicking, knee_flexion and squats 8-10 mm better each, the
+# clips with little flexion 2-6 mm worse), Vive held-out 43.7 -> 41.8 mm; 0.2 and 0.3
+# give 42.0 and 41.8. Following the
 # knee's rotation too made the rotation error worse (5.7 -> 6.4 deg): the strap turns
 # with the thigh.
 KNEE_BEND_SHARE = 0.25
@@ -256,8 +257,7 @@ def calibrate(rig: Rig, positions: dict[str, NDArray[np.float64]],
     gq, gp = global_pose(sk.with_offsets(offsets), pose, root)
     mounts = {}
     for name, p in positions.items():
-        candidates = [rig.role(r) for r in DEVICE_BONES[name]]
-        joint = min(candidates, key=lambda j: _distance_to_bone(rig, gp, j, p))
+        joint = rig.role(DEVICE_BONES[name])
         if name in BEND_SHARE_DEVICES:
             parent_q = gq[sk.parents[joint]]
             frame = _partly_bent(rig, joint, parent_q, gq[joint], KNEE_BEND_SHARE)
@@ -275,12 +275,19 @@ def calibrate(rig: Rig, positions: dict[str, NDArray[np.float64]],
     return Calibration(rig, offsets, pose, root, mounts, float(s))
 
 
+def _from_canonical(rig: Rig, j: int, parent_q: NDArray[np.float64],
+                    joint_q: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Joint j's rotation away from the canonical pose, in its limit frame (local =
+    pre D post)."""
+    local = R.mul(R.conjugate(parent_q), joint_q)
+    return R.mul(R.mul(R.conjugate(rig.pre[j]), local), R.conjugate(rig.post[j]))
+
+
 def _partly_bent(rig: Rig, j: int, parent_q: NDArray[np.float64],
                  joint_q: NDArray[np.float64], share: float) -> NDArray[np.float64]:
     """Global rotation(s) of joint j turned only `share` of the way from the canonical
     pose (a straight knee) to its rotation (the shorter way, about the same axis)."""
-    local = R.mul(R.conjugate(parent_q), joint_q)
-    D = R.mul(R.mul(R.conjugate(rig.pre[j]), local), R.conjugate(rig.post[j]))
+    D = _from_canonical(rig, j, parent_q, joint_q)
     part = R.mul(rig.pre[j], R.mul(R.from_rotvec(share * R.to_rotvec(D)), rig.post[j]))
     return R.mul(parent_q, part)
 
@@ -289,19 +296,6 @@ def _partly_twisted(rig: Rig, j: int, parent_q: NDArray[np.float64],
                     joint_q: NDArray[np.float64], share: float) -> NDArray[np.float64]:
     """Global rotation(s) of joint j with only `share` of its twist (about its limit y
     axis, away from the canonical pose) kept."""
-    local = R.mul(R.conjugate(parent_q), joint_q)
-    D = R.mul(R.mul(R.conjugate(rig.pre[j]), local), R.conjugate(rig.post[j]))
-    _swing, twist = R.swing_twist(D, axis=1)
+    _swing, twist = R.swing_twist(_from_canonical(rig, j, parent_q, joint_q), axis=1)
     undo = R.from_axis_angle([0.0, 1.0, 0.0], -(1.0 - share) * np.asarray(twist))
     return R.mul(joint_q, R.mul(R.conjugate(rig.post[j]), R.mul(undo, rig.post[j])))
-
-
-def _distance_to_bone(rig: Rig, gp: NDArray[np.float64], j: int,
-                      p: NDArray[np.float64]) -> float:
-    """Distance from a point to the segment from joint j to its (first) child."""
-    kids = rig.skeleton.children(j)
-    a = gp[j]
-    b = gp[kids[0]] if kids else gp[j]
-    ab = b - a
-    t = 0.0 if not ab.any() else float(np.clip(np.dot(p - a, ab) / np.dot(ab, ab), 0, 1))
-    return float(np.linalg.norm(a + t * ab - p))

@@ -74,8 +74,8 @@ def test_bvh_eval_follows_a_body_that_travels(shared_data: SharedData, name: str
 
 
 def test_a_knee_tracker_rides_a_share_of_the_knee_bend() -> None:
-    """Its position turns about the knee by KNEE_BEND_SHARE of the knee's flexion, its
-    rotation stays the thigh's; at the calibration pose it is where it was recorded."""
+    """Its position turns about the knee by KNEE_BEND_SHARE of the knee's flexion away
+    from the straight leg; its rotation stays the thigh's."""
     from solver.calibration import KNEE_BEND_SHARE, Calibration, Mount, _partly_bent
     from solver.readers.gltf import load_makehuman
     from solver.rig import build_rig, global_pose
