@@ -215,13 +215,8 @@ class Session:
     # ------------------------------------------------------------------ messages
     async def send(self, message: ClientMessage) -> None:
         """Send one message; SessionError if the server is gone."""
-        await self.send_encoded(encode(message))
-
-    async def send_encoded(self, data: bytes) -> None:
-        """Send a message already encoded (a hot path's direct encoder); SessionError if
-        the server is gone."""
         try:
-            await self.ws.send(data)
+            await self.ws.send(encode(message))
         except ConnectionClosed as exc:
             raise SessionError(self.url, _closed_reason(exc, self.last_error)) from None
 

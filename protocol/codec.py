@@ -126,6 +126,7 @@ def encode_tracker_frame(seq: int, roles: Sequence[str], poses: NDArray[Any],
     if poses.ndim != 2 or poses.shape != checked.shape or not checked_poses(poses, checked):
         return encode(TrackerFrame(seq=seq, roles=tuple(roles), poses=poses,  # type: ignore[arg-type]
                                    t_capture=t_capture, clock_offset=clock_offset))
-    return msgpack.packb({"roles": list(roles), "poses": checked.astype("<f8").tobytes(),
+    wire = checked.astype("<f8", copy=False)  # no copy on a little-endian machine
+    return msgpack.packb({"roles": list(roles), "poses": wire.tobytes(),
                           "t_capture": float(t_capture), "clock_offset": float(clock_offset),
                           "type": "tracker_frame", "seq": int(seq)}, use_bin_type=True)
