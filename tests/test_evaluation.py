@@ -110,6 +110,45 @@ def test_a_knee_tracker_rides_a_share_of_the_knee_bend() -> None:
     assert abs(R.angle_between(frame, straight) - KNEE_BEND_SHARE * flexion) < 1e-9
 
 
+def test_a_knee_tracker_turns_out_as_the_knee_bends() -> None:
+    """About the hip-ankle line, outwards for its side, KNEE_TURN_OUT once the knee is
+    bent KNEE_TURN_FULL_BEND or more, in proportion below; a straight knee not at all."""
+    from solver.calibration import (
+        KNEE_TURN_FULL_BEND,
+        KNEE_TURN_OUT,
+        Calibration,
+        Mount,
+    )
+    from solver.readers.gltf import load_makehuman
+    from solver.rig import build_rig, global_pose
+
+    rig = build_rig(load_makehuman().skeleton)
+    offset = np.array([0.0, 0.09, 0.05])
+    unit = np.array([0.0, 0.0, 0.0, 1.0])
+    for side, sign in (("l", -1.0), ("r", 1.0)):
+        knee = rig.role(f"shin_{side}")
+        hip, ankle = rig.role(f"thigh_{side}"), rig.role(f"foot_{side}")
+        turned = Mount(knee, offset, unit, bend_share=0.25, turn_out=sign * KNEE_TURN_OUT)
+        plain = Mount(knee, offset, unit, bend_share=0.25)
+        cal = Calibration(rig, rig.skeleton.offsets, rig.canonical, rig.skeleton.offsets[0],
+                          {"turned": turned, "plain": plain}, 1.0)
+        for flexion, share in ((0.0, 0.0), (0.5 * KNEE_TURN_FULL_BEND, 0.5),
+                               (KNEE_TURN_FULL_BEND, 1.0), (1.6, 1.0)):
+            pose = rig.canonical.copy()
+            pose[knee] = R.mul(R.mul(rig.pre[knee],
+                                     R.from_axis_angle([1.0, 0.0, 0.0], flexion)),
+                               rig.post[knee])
+            gq, gp = global_pose(rig.skeleton, pose)
+            pos, rot = cal.predict(gq[None], gp[None], ("turned", "plain"))
+            axis = R.normalize_vec(gp[ankle] - gp[hip])
+            turn = R.from_axis_angle(axis, sign * KNEE_TURN_OUT * share)
+            np.testing.assert_allclose(pos[0, 0], gp[hip] + R.rotate(turn, pos[0, 1] - gp[hip]),
+                                       atol=1e-12)
+            assert abs(R.angle_between(rot[0, 0], rot[0, 1]) - KNEE_TURN_OUT * share) < 1e-9
+            if flexion > 0.0:  # outwards: away from the body's midline (x is left)
+                assert sign * (pos[0, 0, 0] - pos[0, 1, 0]) < 0.0
+
+
 def test_a_forearm_tracker_follows_a_share_of_the_forearm_twist() -> None:
     from solver.calibration import _partly_twisted
     from solver.readers.gltf import load_makehuman

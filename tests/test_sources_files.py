@@ -177,6 +177,33 @@ def test_bvh_tpose_stands_where_the_clip_starts(walker: BvhSource) -> None:
     assert np.degrees(np.arctan2(abs(hips[1]), hips[0])) > 15.0
 
 
+def test_calibration_raises_the_hips_and_knees_and_keeps_the_ankles(
+        walker: BvhSource, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The legs pivot HIP_PIVOT_RAISE and bend KNEE_PIVOT_RAISE (scaled) higher than the
+    template's joints; the T-pose ankles stay where the template's would be."""
+    from solver import calibration
+    from solver.rig import global_pose
+
+    rig = build_rig(load_makehuman().skeleton)
+    tpose = walker.calibration()
+    devices = (dict(zip(tpose.roles, tpose.positions, strict=True)),
+               dict(zip(tpose.roles, tpose.rotations, strict=True)))
+    cal = calibrate(rig, *devices)
+    lifts = (("thigh", calibration.HIP_PIVOT_RAISE), ("shin", calibration.KNEE_PIVOT_RAISE),
+             ("foot", 0.0))
+    monkeypatch.setattr(calibration, "HIP_PIVOT_RAISE", 0.0)
+    monkeypatch.setattr(calibration, "KNEE_PIVOT_RAISE", 0.0)
+    template = calibrate(rig, *devices)
+    _, raised = global_pose(rig.skeleton.with_offsets(cal.offsets), cal.pose, cal.root)
+    _, plain = global_pose(rig.skeleton.with_offsets(template.offsets), template.pose,
+                           template.root)
+    s = cal.scale
+    for side in "lr":
+        for bone, lift in lifts:
+            j = rig.role(f"{bone}_{side}")
+            np.testing.assert_allclose(raised[j] - plain[j], [0.0, lift * s, 0.0], atol=1e-9)
+
+
 def test_bvh_calibrates_makehuman_and_solves_close_to_the_devices(walker: BvhSource) -> None:
     rig = build_rig(load_makehuman().skeleton)
     tpose = walker.calibration()
