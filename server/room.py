@@ -57,9 +57,13 @@ class SharedBatch:
 Delivery = tuple[SharedBatch, int]  # a batch and the index of one avatar in it
 
 # the longest a burst may keep a batch open; 16 players' frames reach the server within
-# ~0.6 ms of each other on loopback, and one batch of 16 costs a quarter of four batches
-# of 4 (one solve call, one message per spectator)
-COALESCE_MAX_S = 0.0004
+# ~0.6 ms of each other on loopback (capture spread in a batch: 0.56-0.70 ms p50), and
+# one batch of 16 costs a quarter of four batches of 4 (one solve call, one message per
+# spectator). At 0.4 ms most bursts split in two and every spectator got both halves:
+# 0.7 ms took the 16 + 16 demo from ~1.6 to ~1.3 batches a tick and its p99
+# capture-to-spectator from 3.5-3.9 to 3.1-3.3 ms, for a p99 server of 1.3-1.5 instead
+# of 1.2-1.3 ms (three 20 s runs each); 1.0 ms gave no more
+COALESCE_MAX_S = 0.0007
 
 
 @dataclass
