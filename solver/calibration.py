@@ -22,7 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from solver import rotations as R
 from solver.kernels import bone_targets
@@ -279,13 +279,9 @@ def calibrate(rig: Rig, positions: dict[str, NDArray[np.float64]],
         # hip joints and knees (HIP_PIVOT_RAISE, KNEE_PIVOT_RAISE): raise both, the
         # T-pose ankles staying where they were
         gq, gp = global_pose(sk.with_offsets(offsets), pose, root)
-        hip_lift = R.rotate(yaw, np.array([0.0, HIP_PIVOT_RAISE * s, 0.0]))
-        knee_lift = R.rotate(yaw, np.array([0.0, KNEE_PIVOT_RAISE * s, 0.0]))
-        for side in "lr":
-            th, sh, ft = (rig.role(f"{bone}_{side}") for bone in ("thigh", "shin", "foot"))
-            offsets[th] = offsets[th] + R.rotate(R.conjugate(gq[sk.parents[th]]), hip_lift)
-            offsets[sh] = offsets[sh] + R.rotate(R.conjugate(gq[th]), knee_lift - hip_lift)
-            offsets[ft] = offsets[ft] - R.rotate(R.conjugate(gq[sh]), knee_lift)
+        legs = [tuple(rig.role(f"{bone}_{side}") for bone in ("thigh", "shin", "foot"))
+                for side in "lr"]
+        raise_leg_pivots(sk.parents, legs, offsets, gq, R.rotate(yaw, [0.0, s, 0.0]))
     gq, gp = global_pose(sk.with_offsets(offsets), pose, root)
     mounts = {}
     for name, p in positions.items():
@@ -306,6 +302,22 @@ def calibrate(rig: Rig, positions: dict[str, NDArray[np.float64]],
         mounts[name] = Mount(joint, R.rotate(inv, p - gp[joint]),
                              R.mul(inv, rotations[name]), share)
     return Calibration(rig, offsets, pose, root, mounts, float(s))
+
+
+def raise_leg_pivots(parents: NDArray[np.integer], legs: list[tuple[int, ...]],
+                     offsets: NDArray[np.float64], gq: NDArray[np.float64],
+                     up: ArrayLike) -> None:
+    """Move each leg's (thigh, shin, foot) hip joint HIP_PIVOT_RAISE and knee
+    KNEE_PIVOT_RAISE along ``up`` (world; its length is the body scale), the ankle staying:
+    ``offsets`` (J, 3) change in place, ``gq`` (J, 4) are the pose's global rotations.
+    Calibration does it to the person's T-pose; the viewer to the mesh's rest pose, so
+    that its flesh binds to the joints the avatars move."""
+    hip_lift = HIP_PIVOT_RAISE * np.asarray(up, dtype=np.float64)
+    knee_lift = KNEE_PIVOT_RAISE * np.asarray(up, dtype=np.float64)
+    for thigh, shin, foot in legs:
+        offsets[thigh] += R.rotate(R.conjugate(gq[parents[thigh]]), hip_lift)
+        offsets[shin] += R.rotate(R.conjugate(gq[thigh]), knee_lift - hip_lift)
+        offsets[foot] -= R.rotate(R.conjugate(gq[shin]), knee_lift)
 
 
 def _from_canonical(rig: Rig, j: int, parent_q: NDArray[np.float64],

@@ -16,6 +16,7 @@ from client.viewer.renderer import BACKGROUND, AvatarDraw, GLUnavailableError, R
 from client.viewer.skinning import (
     FittedAvatar,
     SkeletonMismatchError,
+    bind_offsets,
     fit_avatar,
     skin,
     template_avatar,
@@ -56,9 +57,10 @@ def rest(mesh: SkinnedMesh) -> tuple[np.ndarray, np.ndarray]:
 def rescaled(mesh: SkinnedMesh, body: float, arms: float) -> FittedAvatar:
     """The template re-boned as calibration does: body scaled, arms scaled apart."""
     sk = mesh.skeleton
-    offsets = sk.offsets * body
+    bind = bind_offsets(sk)
+    offsets = bind * body
     for name in ("lowerarm_l", "hand_l", "lowerarm_r", "hand_r"):  # upper arm, forearm
-        offsets[sk.index(name)] = sk.offsets[sk.index(name)] * arms
+        offsets[sk.index(name)] = bind[sk.index(name)] * arms
     return template_avatar(mesh, offsets=offsets)
 
 
@@ -97,7 +99,7 @@ def test_uniformly_scaled_avatar_is_the_scaled_mesh(renderer: Renderer,
     """The fit maps each bone's flesh with its bone: a uniformly larger skeleton wears a
     uniformly larger mesh, exactly."""
     s = 1.15
-    avatar = template_avatar(mesh, offsets=mesh.skeleton.offsets * s)
+    avatar = template_avatar(mesh, offsets=bind_offsets(mesh.skeleton) * s)
     q, root = rest(mesh)
     gpu, ref = skinned(renderer, AvatarDraw(avatar, q, root))
     expected = root + s * (mesh.positions.astype(np.float64) - root)

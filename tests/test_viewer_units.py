@@ -130,3 +130,35 @@ def test_hud_lines_say_mode_rate_count_and_stages() -> None:
     # stages in the order a pose travels
     assert text.index("server") < text.index("capture_to_render")
     assert "zero-buffer" in hud_lines({}, 30.0, 1, "zero-buffer", None, "mirror")[0]
+
+
+def test_a_calibrated_avatar_wears_the_mesh_without_tearing(mesh: SkinnedMesh) -> None:
+    """Calibration raises the hips and knees (solver.calibration); the flesh is bound to
+    those joints, so at rest the body and legs are the template mesh scaled by the body
+    scale, exactly (bound to the template's own hips, the thighs' flesh moved up with the
+    raised joints and the skin at the hips tore into sheets)."""
+    from client.builtin import builtin_motion_path
+    from client.sources.bvh_source import BvhSource
+    from client.viewer.skinning import fit_avatar, pose_matrices
+    from protocol import AvatarInfo
+    from solver.calibration import calibrate
+    from solver.rig import build_rig
+
+    sk = mesh.skeleton
+    tpose = BvhSource(builtin_motion_path()).calibration()
+    cal = calibrate(build_rig(sk), dict(zip(tpose.roles, tpose.positions, strict=True)),
+                    dict(zip(tpose.roles, tpose.rotations, strict=True)))
+    info = AvatarInfo(avatar_id=1, display_name="walker", joint_names=sk.names,
+                      parents=tuple(int(p) for p in sk.parents), rest_offsets=cal.offsets)
+    avatar = fit_avatar(mesh, info)
+    root = sk.offsets[0]
+    m, _, _ = pose_matrices([avatar], mesh, [R.identity((sk.num_joints,))], [root])
+    out = skin(mesh.positions, mesh.joints, mesh.weights, m[0])
+    arms = [j for j in range(sk.num_joints)
+            if any(sk.names[j].startswith(p) for p in (
+                "clavicle", "upperarm", "lowerarm", "hand", "thumb", "index", "middle",
+                "ring", "pinky"))]
+    body = ~(np.isin(mesh.joints, arms) & (mesh.weights > 0)).any(axis=1)
+    expected = root + cal.scale * (mesh.positions.astype(np.float64) - root)
+    assert body.sum() > mesh.num_vertices // 2  # torso, head and legs
+    assert np.abs(out[body] - expected[body]).max() < 1e-4

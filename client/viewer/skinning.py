@@ -18,13 +18,16 @@ their parent's map. Because each ``F_j`` carries its bone's child offsets onto t
 avatar's, the parent's and child's joint matrices agree at the joint, and vertices blended
 between them do not tear.
 
-A vertex bound to joint j then goes to (column vectors, rest rotations are identity)
+The template here is the *bind skeleton* (``bind_offsets``): the mesh's rig with its
+hips and knees moved to where calibration puts every avatar's, so that a calibrated
+avatar at rest wears the mesh merely scaled. A vertex bound to joint j then goes to
+(column vectors, rest rotations are identity; b_j the bind skeleton's joint)
 
-    v' = p_j + R_j F_j (v - rest_j)  =  M_j v,   M_j = [R_j F_j | p_j] @ IB_j
+    v' = p_j + R_j F_j (v - b_j)  =  M_j v,   M_j = [R_j F_j | p_j + R_j F_j d_j] @ IB_j
 
 where R_j, p_j are the joint's global rotation and position from forward kinematics on the
-*avatar's* offsets and IB_j the template's inverse bind matrix (a translation by
--rest_j). ``skin`` is the numpy linear blend skinning the GPU's vertex shader is checked
+*avatar's* offsets, IB_j the mesh's inverse bind matrix (a translation by -rest_j) and
+d_j = rest_j - b_j. ``skin`` is the numpy linear blend skinning the GPU's vertex shader is checked
 against: v' = sum_k w_k M_{j_k} v. Normals use the same matrices' 3x3 part, renormalised
 (exact for rotations and uniform scales; off by the stretch for stretched bones, a
 shading nuance).
@@ -40,9 +43,10 @@ from numpy.typing import NDArray
 
 from protocol import AvatarInfo
 from solver import rotations as R
-from solver.calibration import EYE_FROM_HEAD_JOINT
+from solver.calibration import EYE_FROM_HEAD_JOINT, raise_leg_pivots
 from solver.fk import forward_kinematics
 from solver.readers.gltf import SkinnedMesh
+from solver.rig import build_rig, global_pose
 from solver.skeleton import Skeleton
 
 Array = NDArray[np.float64]
@@ -66,6 +70,21 @@ def body_scale(template: Array, offsets: Array) -> float:
     if not np.any(ok):
         return 1.0
     return float(np.median(a[1:][ok] / t[1:][ok]))
+
+
+def bind_offsets(skeleton: Skeleton) -> Array:
+    """The template's offsets with its hips and knees where calibration puts every
+    avatar's (``raise_leg_pivots`` at the rest pose, scale 1): the skeleton the mesh's
+    flesh is bound to. Fitted to the template's own joints instead, the flesh of each
+    thigh moved up with its raised hip while the pelvis' stayed, and the skin between
+    them stretched into sheets."""
+    rig = build_rig(skeleton)
+    legs = [tuple(rig.role(f"{bone}_{side}") for bone in ("thigh", "shin", "foot"))
+            for side in "lr"]
+    gq, _ = global_pose(skeleton, rig.canonical)  # calibration's T-pose, facing +z
+    out = skeleton.offsets.copy()
+    raise_leg_pivots(skeleton.parents, legs, out, gq, [0.0, 1.0, 0.0])
+    return out
 
 
 def fit_matrices(skeleton: Skeleton, offsets: Array) -> Array:
@@ -105,6 +124,9 @@ class FittedAvatar:
     order: NDArray[np.intp]  # (J,)
     scale: float  # body scale relative to the template
     eye: Array  # (3,) the eyes in the head joint's frame (first-person camera)
+    # (J, 3) the mesh's rest joints less the bind skeleton's (``bind_offsets``): the
+    # skinning matrices bind the flesh to the latter
+    bind_shift: Array
 
 
 def fit_avatar(mesh: SkinnedMesh, info: AvatarInfo) -> FittedAvatar:
@@ -127,9 +149,11 @@ def fit_avatar(mesh: SkinnedMesh, info: AvatarInfo) -> FittedAvatar:
             f"avatar {info.avatar_id} ({info.display_name!r}): its joint hierarchy differs "
             f"from the mesh's rig")
     offsets = np.asarray(info.rest_offsets, dtype=np.float64)[order]
-    scale = body_scale(sk.offsets, offsets)
-    return FittedAvatar(info, offsets, fit_matrices(sk, offsets), order, scale,
-                        EYE_FROM_HEAD_JOINT * scale)
+    bind = sk.with_offsets(bind_offsets(sk))
+    scale = body_scale(bind.offsets, offsets)
+    return FittedAvatar(info, offsets, fit_matrices(bind, offsets), order, scale,
+                        EYE_FROM_HEAD_JOINT * scale,
+                        sk.rest_positions() - bind.rest_positions())
 
 
 def template_avatar(mesh: SkinnedMesh, avatar_id: int = 0, name: str = "template",
@@ -138,21 +162,26 @@ def template_avatar(mesh: SkinnedMesh, avatar_id: int = 0, name: str = "template
     sk = mesh.skeleton
     info = AvatarInfo(avatar_id=avatar_id, display_name=name, joint_names=sk.names,
                       parents=tuple(int(p) for p in sk.parents),
-                      rest_offsets=sk.offsets if offsets is None else offsets)
+                      rest_offsets=bind_offsets(sk) if offsets is None else offsets)
     return fit_avatar(mesh, info)
 
 
 def joint_matrices(global_rot: Array, global_pos: Array, fit: Array,
-                   inverse_bind: NDArray[np.floating]) -> Array:
-    """Skinning matrices (..., J, 4, 4): M_j = [R_j F_j | p_j] @ IB_j.
+                   inverse_bind: NDArray[np.floating], bind_shift: Array | None = None,
+                   ) -> Array:
+    """Skinning matrices (..., J, 4, 4): M_j = [R_j F_j | p_j + R_j F_j d_j] @ IB_j.
 
     ``global_rot`` (..., J, 4), ``global_pos`` (..., J, 3), ``fit`` (..., J, 3, 3) (the
-    avatars' fit_matrices; identity for the template), ``inverse_bind`` (J, 4, 4).
+    avatars' fit_matrices; identity for the template), ``inverse_bind`` (J, 4, 4) (the
+    mesh's: a translation by -rest_j), ``bind_shift`` (..., J, 3) d_j = rest_j - bind_j
+    (FittedAvatar.bind_shift; zero by default): the flesh turns about the bind joints.
     """
     rot = R.to_matrix(global_rot)  # (..., J, 3, 3)
     m = np.zeros((*rot.shape[:-2], 4, 4))
     m[..., :3, :3] = rot @ fit
     m[..., :3, 3] = global_pos
+    if bind_shift is not None:
+        m[..., :3, 3] += np.einsum("...ij,...j->...i", m[..., :3, :3], bind_shift)
     m[..., 3, 3] = 1.0
     return m @ np.asarray(inverse_bind, dtype=np.float64)
 
@@ -178,4 +207,5 @@ def pose_matrices(avatars: Sequence[FittedAvatar], mesh: SkinnedMesh,
     # one FK call for every avatar: they share the mesh's hierarchy, not its bone lengths
     gq, gp = forward_kinematics(mesh.skeleton, rot, np.asarray(roots), offsets)
     fit = np.stack([a.fit for a in avatars])
-    return joint_matrices(gq, gp, fit, mesh.inverse_bind), gq, gp
+    shift = np.stack([a.bind_shift for a in avatars])
+    return joint_matrices(gq, gp, fit, mesh.inverse_bind, shift), gq, gp
