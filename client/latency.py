@@ -21,7 +21,8 @@ from protocol.batch import stage_latencies
 
 # the order stages are listed in: along the way a pose travels
 STAGE_ORDER = ("capture_to_server", "solve", "server", "network_to_spectator",
-               "capture_to_spectator", "receive_to_render", "capture_to_render",
+               "capture_to_spectator", "capture_to_decoded", "receive_to_render",
+               "capture_to_render",
                "receive_to_presented", "capture_to_presented")
 PERCENTILES = (("p50", 50.0), ("p95", 95.0), ("p99", 99.0))
 
@@ -76,12 +77,13 @@ class LatencyRecorder:
     def __init__(self, capacity: int = 4096) -> None:
         self.capacity = capacity
         self._buffers: dict[str, _Samples] = {}
-        # add_batch's columns: t_capture, t_server_receive, t_solved, t_sent, t_received
-        self._times = tuple(_Samples(capacity) for _ in range(5))
+        # add_batch's columns: t_capture, t_server_receive, t_solved, t_sent, t_received,
+        # t_decoded
+        self._times = tuple(_Samples(capacity) for _ in range(6))
 
     def add_batch(self, t_capture: NDArray[np.float64], t_server_receive: NDArray[np.float64],
                   t_solved: NDArray[np.float64], t_sent: float,
-                  t_received: float | None = None) -> None:
+                  t_received: float | None = None, t_decoded: float | None = None) -> None:
         """A received batch's times (columns of one value per avatar; seconds on the
         server clock), kept as they are: its stages are computed when read, for all
         batches at once. Computing five stages per batch as it arrived cost a spectator
@@ -92,13 +94,14 @@ class LatencyRecorder:
         for column, values in zip(columns[:3], (t_capture, t_server_receive, t_solved),
                                   strict=True):
             column.extend(values)
-        for column, value in ((columns[3], t_sent), (columns[4], t_received)):
+        for column, value in ((columns[3], t_sent), (columns[4], t_received),
+                              (columns[5], t_decoded)):
             column.fill(n, math.nan if value is None else value)
 
     def _fold(self) -> None:
         """Turn the batch times into stage samples (rows without a receive time get no
         receive-side stages)."""
-        t_capture, t_server_receive, t_solved, t_sent, t_received = (
+        t_capture, t_server_receive, t_solved, t_sent, t_received, t_decoded = (
             c.view() for c in self._times)
         synced = ~np.isnan(t_received)
         for rows, received in ((synced, t_received), (~synced, None)):
@@ -106,6 +109,11 @@ class LatencyRecorder:
                 self.add(stage_latencies(t_capture[rows], t_server_receive[rows],
                                          t_solved[rows], t_sent[rows],
                                          None if received is None else received[rows]))
+        rows = ~np.isnan(t_decoded)
+        if rows.any():
+            self._buffer("capture_to_decoded").extend(stage_latencies(
+                t_capture[rows], t_server_receive[rows], t_solved[rows], t_sent[rows],
+                t_decoded=t_decoded[rows])["capture_to_decoded"])
         for c in self._times:
             c.n = 0
 

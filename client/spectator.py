@@ -127,8 +127,9 @@ class Spectator:
         self.latest.update(
             (avatar_id, ReceivedFrame(batch, i, t_local)) for i, avatar_id in enumerate(ids))
         stats.frames_per_avatar.update(ids)
+        t_decoded = clock.to_server(now()) if clock.synced else None
         stats.latency.add_batch(batch.t_capture, batch.t_server_receive, batch.t_solved,
-                                batch.t_sent, t_server)
+                                batch.t_sent, t_server, t_decoded)
         stats.frames_received += len(ids)
         stats.batches_received += 1
 

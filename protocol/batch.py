@@ -40,16 +40,20 @@ Array = NDArray[np.float64]
 
 
 def stage_latencies(t_capture: Any, t_server_receive: Any, t_solved: Any, t_sent: Any,
-                    t_received: Any = None, t_presented: Any = None) -> dict[str, Any]:
+                    t_received: Any = None, t_presented: Any = None,
+                    t_decoded: Any = None) -> dict[str, Any]:
     """Stage durations in seconds, for one frame's times (floats) or a batch's columns
     (arrays, one value per avatar): the one definition of the stages. Pass viewer times
-    already on the server clock."""
+    already on the server clock (received: the bytes reached the viewer's process;
+    decoded: the viewer has the poses, checked)."""
     out = {"capture_to_server": t_server_receive - t_capture,
            "solve": t_solved - t_server_receive,
            "server": t_sent - t_server_receive}
     if t_received is not None:
         out["capture_to_spectator"] = t_received - t_capture
         out["network_to_spectator"] = t_received - t_sent
+    if t_decoded is not None:
+        out["capture_to_decoded"] = t_decoded - t_capture
     if t_presented is not None:
         out["capture_to_presented"] = t_presented - t_capture
         if t_received is not None:

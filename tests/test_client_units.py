@@ -86,7 +86,8 @@ def test_batch_times_give_the_stages_of_each_frame() -> None:
         t_solved = t_server_receive + rng.uniform(0.0001, 0.001, n)
         t_sent = float(t_solved.max()) + 0.00005
         t_received = None if k % 7 == 3 else t_sent + 0.0004
-        rec.add_batch(t_capture, t_server_receive, t_solved, t_sent, t_received)
+        t_decoded = None if t_received is None or k % 5 == 1 else t_received + 0.0003
+        rec.add_batch(t_capture, t_server_receive, t_solved, t_sent, t_received, t_decoded)
         for i in range(n):
             expected.add(AvatarFrame(avatar_id=i + 1, seq=k, root=[0.0, 1.0, 0.0],
                                      rotations=[[0.0, 0.0, 0.0, 1.0]],
@@ -94,10 +95,14 @@ def test_batch_times_give_the_stages_of_each_frame() -> None:
                                      t_server_receive=t_server_receive[i],
                                      t_solved=t_solved[i], t_sent=t_sent
                                      ).latencies(t_received=t_received))
+            if t_decoded is not None:
+                expected.add_values("capture_to_decoded",
+                                    np.array([t_decoded - t_capture[i]]))
         if k == 20:  # reading in the middle, then adding more, loses nothing
             assert rec.counts()["server"] == expected.counts()["server"]
     assert rec.counts() == expected.counts()
     assert rec.counts()["capture_to_spectator"] < rec.counts()["server"]
+    assert 0 < rec.counts()["capture_to_decoded"] < rec.counts()["capture_to_spectator"]
     for stage in expected.stages:
         np.testing.assert_allclose(np.sort(rec.samples(stage)),
                                    np.sort(expected.samples(stage)), rtol=0, atol=1e-12)
