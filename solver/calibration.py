@@ -310,7 +310,7 @@ def raise_leg_pivots(parents: NDArray[np.integer], legs: list[tuple[int, ...]],
     """Move each leg's (thigh, shin, foot) hip joint HIP_PIVOT_RAISE and knee
     KNEE_PIVOT_RAISE along ``up`` (world; its length is the body scale), the ankle staying:
     ``offsets`` (J, 3) change in place, ``gq`` (J, 4) are the pose's global rotations.
-    Calibration does it to the person's T-pose; the viewer to the mesh's rest pose, so
+    Calibration does it to the person's T-pose; the viewer to the template's (scale 1), so
     that its flesh binds to the joints the avatars move."""
     hip_lift = HIP_PIVOT_RAISE * np.asarray(up, dtype=np.float64)
     knee_lift = KNEE_PIVOT_RAISE * np.asarray(up, dtype=np.float64)
