@@ -143,3 +143,49 @@ def test_the_pelvis_follows_its_target_exactly(rig: Rig) -> None:
 def test_unknown_solver_is_refused(rig: Rig) -> None:
     with pytest.raises(ValueError, match="unknown solver"):
         Solver(rig, "magic")
+
+
+def test_the_elbow_angle_from_the_lowest_point_of_its_circle() -> None:
+    """_below: signed angle about the shoulder-wrist line from the circle's lowest point
+    to the elbow turned by psi; 0 when the line is (nearly) vertical."""
+    from solver.ik.analytic import _below
+
+    unit = np.array([0.0, 0.0, 0.0, 1.0])
+    offsets = np.zeros((2, 3))
+    offsets[1] = [0.0, -0.3, 0.0]  # the elbow hangs below the shoulder
+    n = np.array([0.0, 0.0, 1.0])  # a horizontal shoulder-wrist line
+    assert abs(_below(unit, offsets, 1, 0.0, *n)) < 1e-12
+    for psi in (0.4, -1.1, 2.5):
+        assert _below(unit, offsets, 1, psi, *n) == pytest.approx(psi, abs=1e-12)
+    assert _below(unit, offsets, 1, 0.7, 0.0, 1.0, 0.0) == 0.0  # no lowest point
+
+
+def test_a_bent_arms_elbow_is_turned_part_of_the_way_down(rig: Rig) -> None:
+    """With the hand turned so that a neutral wrist would put the elbow out to the side,
+    the solved elbow ends lower than that, by ELBOW_DOWN_SHARE of its angle from the
+    lowest point of its circle."""
+    from solver.ik.analytic import ELBOW_DOWN_SHARE
+
+    q = PoseBatch.canonical(rig, 1).rotations.copy()
+    t1, t2 = np.empty(4), np.empty(4)
+    upper, elbow, hand = (rig.role(f"{b}_l") for b in ("upperarm", "forearm", "hand"))
+    # arm forward and out, elbow bent 90 deg: the elbow well off the circle's bottom
+    compose_joint(rig.pre[upper], rig.post[upper], 0.9, 0.0, 0.6, q[0, upper], t1, t2)
+    compose_joint(rig.pre[elbow], rig.post[elbow], 1.57, 0.0, 0.0, q[0, elbow], t1, t2)
+    targets = targets_of(rig, q, np.zeros((1, 3)))
+    _, gp = forward_kinematics(rig.skeleton, q, np.zeros((1, 3)))
+    state = PoseBatch.canonical(rig, 1)
+    Solver(rig, "analytic", SolverOptions(max_iterations=0)).solve(targets, state)
+    _, sp = forward_kinematics(rig.skeleton, state.rotations, state.root)
+    s, w = gp[0, upper], gp[0, hand]
+    n = (w - s) / np.linalg.norm(w - s)
+
+    def from_bottom(e: np.ndarray) -> float:  # the elbow's angle about n from the bottom
+        down = np.array([0.0, -1.0, 0.0]) - n * -n[1]
+        v = (e - s) - n * np.dot(e - s, n)
+        return float(np.arctan2(np.dot(np.cross(down, v), n), np.dot(down, v)))
+
+    posed, solved = from_bottom(gp[0, elbow]), from_bottom(sp[0, elbow])
+    assert abs(posed) > 0.3  # the test pose's elbow is out to the side
+    assert np.linalg.norm(sp[0, hand] - w) < 1e-6  # the hand still reaches its target
+    assert solved == pytest.approx((1.0 - ELBOW_DOWN_SHARE) * posed, abs=0.02)
