@@ -62,7 +62,10 @@ Delivery = tuple[SharedBatch, int]  # a batch and the index of one avatar in it
 # spectator). At 0.4 ms most bursts split in two and every spectator got both halves:
 # 0.7 ms took the 16 + 16 demo from ~1.6 to ~1.3 batches a tick and its p99
 # capture-to-spectator from 3.5-3.9 to 3.1-3.3 ms, for a p99 server of 1.3-1.5 instead
-# of 1.2-1.3 ms (three 20 s runs each); 1.0 ms gave no more
+# of 1.2-1.3 ms (three 20 s runs each); 1.0 ms gave no more. Rechecked once clients
+# read before they decode: 0.4 ms still gives the lower server tail and the higher
+# end-to-end one (alternated 20 s runs: p99 server 1.18 / 1.25 / 1.13 against 1.47 /
+# 1.24 / 1.38 ms, capture-to-spectator 3.29 / 3.58 / 3.11 against 3.09 / 2.52 / 2.92)
 COALESCE_MAX_S = 0.0007
 
 
