@@ -35,6 +35,7 @@ shading nuance).
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -74,17 +75,28 @@ def body_scale(template: Array, offsets: Array) -> float:
 
 def bind_offsets(skeleton: Skeleton) -> Array:
     """The template's offsets with its hips and knees where calibration puts every
-    avatar's (``raise_leg_pivots`` at the rest pose, scale 1): the skeleton the mesh's
-    flesh is bound to. Fitted to the template's own joints instead, the flesh of each
-    thigh moved up with its raised hip while the pelvis' stayed, and the skin between
-    them stretched into sheets."""
+    avatar's (``raise_leg_pivots`` at calibration's T-pose, scale 1): the skeleton the
+    mesh's flesh is bound to. Fitted to the template's own joints instead, the flesh of
+    each thigh moved up with its raised hip while the pelvis' stayed, and the skin between
+    them stretched into sheets. A new array each call."""
+    return _bind(skeleton)[0].offsets.copy()
+
+
+# per mesh skeleton (hashed by identity): building its rig takes milliseconds, and every
+# avatar that joins is fitted to the same bind skeleton
+@functools.lru_cache(maxsize=4)
+def _bind(skeleton: Skeleton) -> tuple[Skeleton, Array]:
+    """The bind skeleton (see ``bind_offsets``) and FittedAvatar.bind_shift for it."""
     rig = build_rig(skeleton)
     legs = [tuple(rig.role(f"{bone}_{side}") for bone in ("thigh", "shin", "foot"))
             for side in "lr"]
     gq, _ = global_pose(skeleton, rig.canonical)  # calibration's T-pose, facing +z
-    out = skeleton.offsets.copy()
-    raise_leg_pivots(skeleton.parents, legs, out, gq, [0.0, 1.0, 0.0])
-    return out
+    offsets = skeleton.offsets.copy()
+    raise_leg_pivots(skeleton.parents, legs, offsets, gq, [0.0, 1.0, 0.0])
+    bind = skeleton.with_offsets(offsets)
+    shift = skeleton.rest_positions() - bind.rest_positions()
+    offsets.flags.writeable = shift.flags.writeable = False  # shared by every avatar
+    return bind, shift
 
 
 def fit_matrices(skeleton: Skeleton, offsets: Array) -> Array:
@@ -149,11 +161,10 @@ def fit_avatar(mesh: SkinnedMesh, info: AvatarInfo) -> FittedAvatar:
             f"avatar {info.avatar_id} ({info.display_name!r}): its joint hierarchy differs "
             f"from the mesh's rig")
     offsets = np.asarray(info.rest_offsets, dtype=np.float64)[order]
-    bind = sk.with_offsets(bind_offsets(sk))
+    bind, shift = _bind(sk)
     scale = body_scale(bind.offsets, offsets)
     return FittedAvatar(info, offsets, fit_matrices(bind, offsets), order, scale,
-                        EYE_FROM_HEAD_JOINT * scale,
-                        sk.rest_positions() - bind.rest_positions())
+                        EYE_FROM_HEAD_JOINT * scale, shift)
 
 
 def template_avatar(mesh: SkinnedMesh, avatar_id: int = 0, name: str = "template",
