@@ -49,6 +49,9 @@ def _parser() -> argparse.ArgumentParser:
                     help="address to listen on (0.0.0.0 for every interface)")
     sv.add_argument("--port", type=int, default=8765)
     sv.add_argument("--solver", choices=SOLVERS, default=DEFAULT_SOLVER)
+    sv.add_argument("--busy-poll", action="store_true",
+                    help="never sleep: poll, and keep the frame path warm between bursts "
+                         "(lower latency; takes a whole core, give it one)")
 
     pl = sub.add_parser("play", help="join a session as a tracked player")
     pl.add_argument("--server", required=True, help="ws://host:port")
@@ -95,6 +98,9 @@ def _parser() -> argparse.ArgumentParser:
     dm.add_argument("--spectators", type=int, default=2)
     dm.add_argument("--seconds", type=float, default=10.0)
     dm.add_argument("--solver", choices=SOLVERS, default=DEFAULT_SOLVER)
+    dm.add_argument("--no-busy-poll", dest="busy_poll", action="store_false",
+                    help="the server sleeps between bursts (by default it busy-polls "
+                         "when it has a core of its own)")
     dm.add_argument("--json", action="store_true")
 
     bench = sub.add_parser("bench", help="measure speed")
@@ -223,7 +229,7 @@ def _serve(args: argparse.Namespace) -> int:
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     install_fast_loop()
-    session = Session(solver=args.solver)
+    session = Session(solver=args.solver, busy=args.busy_poll)
     try:
         asyncio.run(run_server(args.host, args.port, session, handle_signals=True))
     except OSError as err:
@@ -290,7 +296,8 @@ def _demo(args: argparse.Namespace) -> int:
     if args.players < 0 or args.spectators < 0 or args.seconds <= 0:
         return _fail("demo", "players and spectators must be >= 0 and seconds > 0")
     result = run_demo(args.players, args.spectators, args.seconds, solver=args.solver,
-                      render=args.render, render_mode=args.render_mode)
+                      render=args.render, render_mode=args.render_mode,
+                      busy=None if args.busy_poll else False)
     if args.json:
         print(json.dumps(result.as_json()))
     else:

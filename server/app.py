@@ -38,6 +38,7 @@ from protocol import (
 )
 from protocol.arrivals import ArrivalStamps, arrival_time
 from server.avatars import AvatarSolver
+from server.busy import OpenBursts, WarmPath, busy_poll
 from server.clock import now
 from server.metrics import Metrics
 from server.outbox import Outbox
@@ -58,7 +59,9 @@ class Session:
     """All rooms of one server process."""
 
     def __init__(self, rig: Rig | None = None, solver: str = "analytic",
-                 reconnect_grace: float = RECONNECT_GRACE) -> None:
+                 reconnect_grace: float = RECONNECT_GRACE, busy: bool = False) -> None:
+        """``busy``: poll without sleeping and keep the frame path warm between bursts
+        (``server.busy``); it takes a whole core."""
         self.rig = rig or build_rig(load_makehuman().skeleton)
         self.solver_name = solver
         self.reconnect_grace = reconnect_grace
@@ -66,6 +69,8 @@ class Session:
         self.metrics = Metrics()
         self._ids = itertools.count(1)
         self._owners: dict[int, ServerConnection] = {}  # avatar id -> its live connection
+        self.bursts = OpenBursts() if busy else None
+        self.warm = WarmPath(self.rig, solver) if busy else None
         # before serving: a first join must not wait for the compiled solver to load
         AvatarSolver(self.rig, solver).warm_up()
         # solve on the event loop's own thread: a batch of a room is tens of avatars, and
@@ -76,7 +81,7 @@ class Session:
     def room(self, name: str) -> Room:
         if name not in self.rooms:  # rooms are created on first join
             self.rooms[name] = Room(name, AvatarSolver(self.rig, self.solver_name),
-                                    self.metrics)
+                                    self.metrics, bursts=self.bursts)
         return self.rooms[name]
 
     async def handle(self, ws: ServerConnection) -> None:
@@ -145,6 +150,8 @@ class Session:
                         room.submit(avatar.avatar_id, msg, t_received)
                     elif isinstance(msg, Calibrate):
                         room.calibrate(avatar, msg.roles, msg.poses)
+                        if self.warm is not None:
+                            self.warm.calibrate(msg.roles, msg.poses)
                     else:
                         await self._common(ws, msg, t_received, "player")
                 except ProtocolError as err:
@@ -177,6 +184,8 @@ class Session:
         except (ProtocolError, ValueError):
             return False
         self.metrics.frames_received += 1
+        if self.warm is not None:
+            self.warm.frame = data
         return True
 
     def _forget_later(self, room: Room, avatar: Avatar) -> None:
@@ -266,7 +275,15 @@ async def run_server(host: str, port: int, session: Session | None = None,
         log.info("posecast server on ws://%s:%d", host, bound)
         if ready is not None:
             ready(bound)
-        await stop.wait()
+        poller = (loop.create_task(busy_poll(session.warm, session.bursts, stop))
+                  if session.warm is not None and session.bursts is not None else None)
+        try:
+            await stop.wait()
+        finally:
+            if poller is not None:
+                poller.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await poller
         server.close(close_connections=True)
         await server.wait_closed()
     return session

@@ -15,6 +15,8 @@ from pathlib import Path
 import pytest
 
 from server.app import Session, run_server
+from solver.motion import ViveRecording
+from solver.readers.vive import read_vive
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 SHARED_DATA = REPO_ROOT.parent / "shared" / "data"
@@ -34,6 +36,12 @@ def shared_data_path(path: str) -> Path:
 def shared_data() -> Callable[[str], Path]:
     """``shared_data("vive/kicking.csv")``: the path of a real data file, or a skip."""
     return shared_data_path
+
+
+@pytest.fixture(scope="module")
+def recording() -> ViveRecording:
+    """The walking clip of the Vive recordings: a player's tracker frames."""
+    return read_vive(shared_data_path("vive/walking.csv"))
 
 
 @contextlib.asynccontextmanager

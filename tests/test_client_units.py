@@ -13,6 +13,7 @@ import time
 
 import numpy as np
 import pytest
+import uvloop
 
 from client.builtin import builtin_motion_path
 from client.connection import SessionError, open_session
@@ -161,39 +162,53 @@ def test_ticker_skips_late_slots_instead_of_bursting() -> None:
     assert t.next_slot(5, 0.0551) == 6  # then back on the grid
 
 
-def test_ticker_waits_on_the_schedule() -> None:
+@pytest.mark.parametrize("loop", ["asyncio", "uvloop"])
+def test_ticker_calls_on_the_schedule(loop: str) -> None:
     async def main() -> tuple[list[int], list[float], float]:
         ticker = Ticker(50.0)  # 20 ms slots: room for a busy machine's wake-up jitter
-        slots, woke = [], []
-        k = await ticker.wait()  # slot 0 starts the schedule
-        for _ in range(8):
-            k = await ticker.wait(k)
+        slots: list[int] = []
+        woke: list[float] = []
+        done = asyncio.get_running_loop().create_future()
+
+        def on_slot(k: int) -> None:
             slots.append(k)
             woke.append(ticker.clock() - ticker.slot_time(k))
-        time.sleep(0.07)  # block the loop 3.5 periods: slots 9..11 pass
-        late = await ticker.wait(k)
-        slots.append(late)
-        return slots, woke, ticker.clock() - ticker.slot_time(late)
+            if k == 8:
+                time.sleep(0.07)  # block the loop 3.5 periods: slots 9..11 pass
+            if len(slots) == 10:
+                done.set_result(None)
 
-    slots, woke, late_by = asyncio.run(main())
-    assert slots[:8] == list(range(1, 9))
-    assert slots[8] in (11, 12)  # the latest slot due, served at once; the rest skipped
-    # measured from the absolute slot times: never early, never (nearly) a period late
-    assert all(-1e-6 <= w < 0.015 for w in woke), woke
-    assert late_by < 0.02
+        ticker.subscribe(on_slot)  # slot 0, at once, starts the schedule
+        await done
+        ticker.unsubscribe(on_slot)
+        return slots, woke, woke[-1]
+
+    slots, woke, late_by = (asyncio.run(main()) if loop == "asyncio"
+                            else uvloop.run(main()))
+    assert slots[:9] == list(range(9))
+    assert slots[9] in (11, 12)  # the latest slot due, served at once; the rest skipped
+    # measured from the absolute slot times: never early (uvloop rounds its timers to
+    # the millisecond; the ticker waits out the rest), never (nearly) a period late
+    assert all(-1e-6 <= w < 0.015 for w in woke[:9]), woke
+    assert 0.0 <= late_by < 0.02
 
 
-def test_shared_ticker_wakes_every_waiter_on_one_slot() -> None:
+def test_shared_ticker_calls_every_player_on_one_slot() -> None:
     async def main() -> None:
         ticker = Ticker(50.0)
-        await ticker.wait()
-        tasks = [asyncio.create_task(ticker.wait(0)) for _ in range(5)]
-        await asyncio.sleep(0)
-        assert list(ticker._slots) == [1]  # one slot, one timer for all of them
-        tasks[0].cancel()  # one player leaving must not cancel the slot for the rest
-        results = await asyncio.gather(*tasks[1:])
-        assert results == [1, 1, 1, 1]
-        assert tasks[0].cancelled()
+        calls: list[tuple[int, int]] = []
+        callbacks = [lambda k, i=i: calls.append((i, k)) for i in range(5)]
+        for c in callbacks:
+            ticker.subscribe(c)
+        await asyncio.sleep(0.03)  # slot 0 at once, slot 1 after 20 ms
+        assert calls == [(i, k) for k in (0, 1) for i in range(5)]  # in order, together
+        ticker.unsubscribe(callbacks[0])  # one player leaving leaves the others called
+        calls.clear()
+        await asyncio.sleep(0.02)
+        assert calls == [(i, 2) for i in range(1, 5)]
+        for c in callbacks[1:]:
+            ticker.unsubscribe(c)
+        assert ticker._timer is None  # nobody left: no timer
 
     asyncio.run(main())
 

@@ -42,7 +42,6 @@ from server.room import Avatar, Room
 from solver.calibration import calibrate
 from solver.ik import PoseBatch, Solver
 from solver.motion import ViveRecording
-from solver.readers.vive import read_vive
 
 TIMEOUT = 5.0
 
@@ -50,15 +49,6 @@ TIMEOUT = 5.0
 @pytest.fixture(scope="module")
 def session() -> Session:
     return Session(reconnect_grace=5.0)  # building the rig and warming the solver: once
-
-
-@pytest.fixture(scope="module")
-def recording() -> ViveRecording:
-    path = Path(__file__).resolve().parents[2] / "shared" / "data" / "vive" / "walking.csv"
-    if not path.exists():
-        pytest.skip("../shared/data/vive/walking.csv is absent: the real recordings live "
-                    "beside the project, not in it")
-    return read_vive(path)
 
 
 def run(test: Callable[[str], Awaitable[None]], session: Session) -> None:
@@ -127,10 +117,15 @@ def test_one_batch_of_avatars_equals_each_solved_alone(session: Session,
         assert np.abs(together.rotations[0] - together.rotations[1]).max() > 1e-3
 
 
-def test_spectator_receives_the_offline_solution(session: Session,
-                                                 recording: ViveRecording) -> None:
+@pytest.mark.parametrize("busy", [False, True], ids=["idle", "busy-poll"])
+def test_spectator_receives_the_offline_solution(session: Session, recording: ViveRecording,
+                                                 busy: bool) -> None:
+    """Also with busy polling: between frames the server runs the latest frame's path on
+    a twin avatar (server.busy), and the avatar's own poses must not feel it."""
     frames = 40
     received: list[AvatarBatch] = []
+    if busy:
+        session = Session(session.rig, reconnect_grace=5.0, busy=True)
 
     async def test(url: str) -> None:
         async with joined(url, "spectator", "solo") as (spec, _), \
@@ -145,8 +140,14 @@ def test_spectator_receives_the_offline_solution(session: Session,
                 batch = await receive(spec)
                 assert isinstance(batch, AvatarBatch)
                 received.append(batch)
+                if busy:  # leave the server idle a moment: the twin's turn
+                    await asyncio.sleep(0.002)
 
     run(test, session)
+    if busy:
+        assert session.warm is not None and session.bursts is not None
+        assert session.warm.steps > frames  # it ran between the frames, on their data
+        assert session.bursts.count == 0
     # the same recording solved offline, frame by frame, warm-started
     rig = session.rig
     rec = recording

@@ -1,0 +1,135 @@
+"""How the server groups frames into bursts: each player's cadence, the bursts a room
+keeps open for the players due, and the count of open bursts that busy polling waits on."""
+
+from __future__ import annotations
+
+import asyncio
+
+import numpy as np
+import pytest
+
+from protocol import Calibrate, TrackerFrame, decode_client, encode
+from server.app import Session
+from server.avatars import AvatarSolver
+from server.busy import OpenBursts
+from server.cadence import MAX_PERIOD_S, Cadence
+from server.metrics import Metrics
+from server.room import Avatar, Room
+from solver.motion import ViveRecording
+
+PERIOD = 1 / 90
+
+
+# --------------------------------------------------------------------------- cadence
+def test_cadence_learns_the_period_and_predicts_the_next_frame() -> None:
+    c = Cadence()
+    assert c.due() is None  # nothing to go by
+    c.arrived(10.0)
+    assert c.due() is None  # one frame: no period yet
+    for k in range(1, 40):  # 90 Hz with +-0.2 ms of jitter
+        c.arrived(10.0 + k * PERIOD + (0.0002 if k % 2 else -0.0002))
+    assert c.period == pytest.approx(PERIOD, abs=5e-5)
+    assert c.due() == pytest.approx(10.0 + 40 * PERIOD, abs=3e-4)
+    assert c.due_within(10.0 + 40 * PERIOD - 0.001, 10.0 + 40 * PERIOD + 0.001)
+    assert not c.due_within(10.0 + 40 * PERIOD + 0.001, 10.0 + 40 * PERIOD + 0.002)
+
+
+def test_cadence_ignores_a_skipped_frame_but_follows_a_new_rate() -> None:
+    c = Cadence()
+    t = 0.0
+    for _ in range(20):
+        t += PERIOD
+        c.arrived(t)
+    t += 2 * PERIOD  # one frame lost on the way: not a new rate
+    c.arrived(t)
+    assert c.period == pytest.approx(PERIOD)
+    for _ in range(3):  # the headset now runs at 45 Hz: three such intervals in a row
+        t += 2 * PERIOD
+        c.arrived(t)
+    assert c.period == pytest.approx(2 * PERIOD)
+    c.arrived(t + 2 * MAX_PERIOD_S)  # a pause: no interval to learn from
+    assert c.period == pytest.approx(2 * PERIOD)
+
+
+def test_open_bursts_count_and_signal() -> None:
+    b = OpenBursts()
+    assert b.count == 0 and b.none_open.is_set()
+    b.opened()
+    b.opened()
+    b.closed()
+    assert b.count == 1 and not b.none_open.is_set()
+    b.closed()
+    b.closed()  # one more than opened: stays at zero
+    assert b.count == 0 and b.none_open.is_set()
+
+
+# --------------------------------------------------------------------------- rooms
+@pytest.fixture(scope="module")
+def session() -> Session:
+    return Session()
+
+
+def _frame(rec: ViveRecording, f: int) -> TrackerFrame:
+    poses = np.concatenate([rec.positions[f], rec.rotations[f]], axis=1)
+    msg = decode_client(encode(TrackerFrame(seq=f, roles=rec.devices, poses=poses,
+                                            t_capture=float(f), clock_offset=0.0)))
+    assert isinstance(msg, TrackerFrame)
+    return msg
+
+
+def _room(session: Session, rec: ViveRecording, window: float,
+          bursts: OpenBursts | None = None) -> Room:
+    room = Room("r", AvatarSolver(session.rig), Metrics(), coalesce_max_s=window,
+                bursts=bursts)
+    t_pose = np.concatenate([rec.positions[0], rec.rotations[0]], axis=1)
+    cal = Calibrate(roles=rec.devices, poses=t_pose, t_capture=0.0, clock_offset=0.0)
+    for a in (1, 2):
+        room.avatars[a] = avatar = Avatar(a, f"player {a}", None)
+        room.calibrate(avatar, cal.roles, cal.poses)
+    return room
+
+
+def _burst(session: Session, rec: ViveRecording, window: float, due_2: float,
+           early: float) -> tuple[set[int], int, int]:
+    """Player 1's frame was due at 1.0 and arrives ``early`` seconds before that; player
+    2's is due at 1.0 + ``due_2``. Returns the players the burst then waits for, and
+    the batches solved and the frames in them after some passes of the loop in which
+    player 2 sends nothing."""
+    async def main() -> tuple[set[int], int, int]:
+        bursts = OpenBursts()
+        room = _room(session, rec, window, bursts)
+        room.avatars[1].cadence = Cadence(last=1.0 - PERIOD, period=PERIOD)
+        room.avatars[2].cadence = Cadence(last=1.0 + due_2 - PERIOD, period=PERIOD)
+        room.submit(1, _frame(rec, 5), 1.0 - early)
+        awaited = set(room._awaited)
+        assert bursts.count == 1  # a busy-polling server now waits for the solve
+        for _ in range(5):
+            await asyncio.sleep(0)
+        batches, solved = room.metrics.batches, room.metrics.frames_solved
+        if batches == 0:  # still open: player 2 comes, one batch of both
+            room.submit(2, _frame(rec, 6), 1.0 + due_2)
+            for _ in range(3):
+                await asyncio.sleep(0)
+            assert (room.metrics.batches, room.metrics.frames_solved) == (1, 2)
+        else:
+            await asyncio.sleep(window)  # past the window: nothing else comes
+        assert bursts.count == 0
+        return awaited, batches, solved
+
+    return asyncio.run(main())
+
+
+def test_a_burst_waits_for_the_players_due_with_it(session: Session,
+                                                   recording: ViveRecording) -> None:
+    # player 2 ticks with player 1 (due 0.3 ms after it): the burst waits for its frame
+    assert _burst(session, recording, window=0.05, due_2=0.0003, early=0.0) == ({2}, 0, 0)
+    # player 2 is out of step (due 5 ms later): player 1's frame is solved at once
+    assert _burst(session, recording, window=0.002, due_2=0.005, early=0.0) == (set(), 1, 1)
+
+
+def test_a_tick_early_for_everyone_still_makes_one_burst(session: Session,
+                                                         recording: ViveRecording) -> None:
+    """Players are compared by when their frames are due, not by when this one came: a
+    tick 6 ms early for both players (a timer, a busy client machine) moves both."""
+    awaited, _, _ = _burst(session, recording, window=0.004, due_2=0.002, early=0.006)
+    assert awaited == {2}
