@@ -113,13 +113,27 @@ class AvatarSolver:
 
     def solve_staged(self, avatar_ids: list[int]) -> PoseBatch:
         """Solve these avatars (each staged) as one batch, each warm-started from its last
-        pose; their new poses in the order asked."""
-        slots = np.array([self._slot[a] for a in avatar_ids], dtype=np.intp)
+        pose; their new poses in the order asked (new arrays: the next solve does not
+        change them)."""
+        slot_list = [self._slot[a] for a in avatar_ids]
+        first = slot_list[0] if slot_list else 0
+        if slot_list == list(range(first, first + len(slot_list))):
+            # side by side in slot order (a room's whole burst, sorted by slot): solve the
+            # rows where they are, without gathering and scattering four arrays
+            rows = slice(first, first + len(slot_list))
+            state = PoseBatch(self._rotations[rows], self._roots[rows])
+            self.solver.solve(self._targets[rows], state, self._offsets[rows])
+            return PoseBatch(state.rotations.copy(), state.root.copy(), state.iterations)
+        slots = np.array(slot_list, dtype=np.intp)
         state = PoseBatch(self._rotations[slots], self._roots[slots])
         self.solver.solve(self._targets[slots], state, self._offsets[slots])
         self._rotations[slots] = state.rotations
         self._roots[slots] = state.root
         return state
+
+    def slot_order(self, avatar_id: int) -> int:
+        """Where the avatar's rows are: a batch in this order solves in place."""
+        return self._slot[avatar_id]
 
     def solve(self, frames: list[tuple[int, tuple[str, ...], Array]]) -> PoseBatch:
         """Solve the avatars of ``frames`` [(avatar id, roles, poses (D, 7): position |

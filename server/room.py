@@ -210,6 +210,7 @@ class Room:
         self._pending.clear()
         if not pending:
             return
+        pending.sort(key=lambda p: self.solver.slot_order(p[0]))  # solved in place
         solved = self.solver.solve_staged([a for a, _, _ in pending])
         t_solved = now()
         shared = SharedBatch([a for a, _, _ in pending], [f.seq for _, f, _ in pending],

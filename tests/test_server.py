@@ -117,6 +117,29 @@ def test_one_batch_of_avatars_equals_each_solved_alone(session: Session,
         assert np.abs(together.rotations[0] - together.rotations[1]).max() > 1e-3
 
 
+def test_solving_in_place_or_gathered_gives_the_same_poses(session: Session,
+                                                          recording: ViveRecording) -> None:
+    """A batch in slot order is solved where its rows are, any other order is gathered
+    and scattered: the same poses either way, and new arrays the next solve leaves be."""
+    rec, n = recording, 4
+    in_place, gathered = AvatarSolver(session.rig), AvatarSolver(session.rig)
+    for solver in (in_place, gathered):
+        for a in range(n):
+            solver.calibrate(a, rec.devices, rec.positions[0], rec.rotations[0])
+    for f in range(1, 5):
+        for solver in (in_place, gathered):
+            for a in range(n):
+                solver.stage(a, rec.devices, poses(rec, f + 15 * a))
+        a_state = in_place.solve_staged(list(range(n)))
+        g_state = gathered.solve_staged(list(reversed(range(n))))
+        np.testing.assert_array_equal(a_state.rotations, g_state.rotations[::-1])
+        np.testing.assert_array_equal(a_state.root, g_state.root[::-1])
+    before = a_state.rotations.copy()
+    in_place.stage(0, rec.devices, poses(rec, 200))
+    in_place.solve_staged(list(range(n)))
+    np.testing.assert_array_equal(a_state.rotations, before)  # not a view of the state
+
+
 @pytest.mark.parametrize("busy", [False, True], ids=["idle", "busy-poll"])
 def test_spectator_receives_the_offline_solution(session: Session, recording: ViveRecording,
                                                  busy: bool) -> None:
