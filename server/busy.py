@@ -6,10 +6,10 @@ finds the server's code and data gone from the caches: the same 16 frames took t
 long 11 ms after the last burst (90 Hz) as back to back (decode, stage, solve and encode:
 1190 against 485 us median, one core). With busy polling the event loop never blocks.
 Between bursts it re-runs the path of the latest tracker frame on a twin avatar (decode,
-stage, solve, encode; one step per pass of the loop, so a frame that arrives waits at
-most one step, ~50 us), which keeps that path in the caches; reads are taken without a
-wake-up. While a burst is open it waits like an idle server: the burst's own passes of
-the loop decide when it ends (``server.room``).
+stage, solve, encode; a third of it at a time, every WARM_PHASE_INTERVAL_S, so that a
+frame that arrives waits ~30 us at most), which keeps that path in the caches; reads are
+taken without a wake-up. While a burst is open it waits like an idle server: the burst's
+own passes of the loop decide when it ends (``server.room``).
 
 It costs a whole core, all the time: use it where the server has a core to itself.
 """
@@ -18,17 +18,25 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import time
 
 import numpy as np
 
 from protocol import TrackerFrame, decode_client
 from protocol.codec import encode_avatar_batch
 from server.avatars import AvatarSolver
+from solver.ik import PoseBatch
 from solver.rig import Rig
 
 log = logging.getLogger("posecast.server")
 
 TWIN = 0  # the twin's avatar id in its own solver
+# a phase of the warm-up every 0.3 ms (a whole frame's path every ~1 ms), polling only in
+# between. Run back to back, the warm-up slowed the other core's processes (on this VM
+# the two cores seem to share one physical core): with 36 players and 36 spectators the
+# spectators' process fell behind by 0.2-0.3 s (p99 network-to-spectator 166 / 297 ms in
+# two 8 s runs, 6.7 / 4.1 ms at this interval); with 16 + 16 both measured alike
+WARM_PHASE_INTERVAL_S = 0.0003
 
 
 class OpenBursts:
@@ -58,7 +66,10 @@ class WarmPath:
     def __init__(self, rig: Rig, solver: str) -> None:
         self.solver = AvatarSolver(rig, solver, capacity=1)
         self.frame: bytes | bytearray | memoryview | None = None  # the latest one seen
-        self.steps = 0
+        self.steps = 0  # whole frames run
+        self._phase = 0
+        self._msg: TrackerFrame | None = None
+        self._solved: PoseBatch | None = None
 
     @property
     def calibrated(self) -> bool:
@@ -69,18 +80,28 @@ class WarmPath:
             self.solver.calibrate(TWIN, roles, poses[:, :3], poses[:, 3:])
 
     def step(self) -> None:
-        """One frame's path on the twin: what a real frame of a lone avatar costs."""
-        if self.frame is None or not self.calibrated:
-            return
-        msg = decode_client(self.frame)
-        if not isinstance(msg, TrackerFrame):
-            return
-        self.solver.stage(TWIN, msg.roles, msg.poses)
-        solved = self.solver.solve_staged([TWIN])
-        t = msg.t_capture_server
-        encode_avatar_batch([TWIN], [msg.seq], solved.root, solved.rotations, [t], [t], t,
-                            t_sent=t)
-        self.steps += 1
+        """A third of one frame's path on the twin, in turn: decode and stage, solve,
+        encode (~30 us each, measured back to back), so that whatever else the loop has
+        to do (a frame that arrives, a spectator's send) waits for one short phase at
+        most."""
+        if self._phase == 0:
+            if self.frame is None or not self.calibrated:
+                return
+            msg = decode_client(self.frame)
+            if not isinstance(msg, TrackerFrame):
+                return
+            self.solver.stage(TWIN, msg.roles, msg.poses)
+            self._msg = msg
+        elif self._phase == 1:
+            self._solved = self.solver.solve_staged([TWIN])
+        else:
+            frame, solved = self._msg, self._solved
+            assert frame is not None and solved is not None
+            t = frame.t_capture_server
+            encode_avatar_batch([TWIN], [frame.seq], solved.root, solved.rotations, [t],
+                                [t], t, t_sent=t)
+            self.steps += 1
+        self._phase = (self._phase + 1) % 3
 
 
 async def busy_poll(warm: WarmPath, bursts: OpenBursts, stop: asyncio.Event) -> None:
@@ -88,11 +109,14 @@ async def busy_poll(warm: WarmPath, bursts: OpenBursts, stop: asyncio.Event) -> 
     burst is open. A step that fails (it cannot, short of a bug) turns warming off and
     leaves the polling."""
     warming = True
+    next_phase = 0.0
     while not stop.is_set():
         if bursts.count:
             await bursts.none_open.wait()
             continue
-        if warming:
+        t = time.perf_counter()
+        if warming and t >= next_phase:
+            next_phase = t + WARM_PHASE_INTERVAL_S
             try:
                 warm.step()
             except Exception:  # never let the warm-up hurt the server

@@ -11,7 +11,7 @@ import pytest
 from protocol import Calibrate, TrackerFrame, decode_client, encode
 from server.app import Session
 from server.avatars import AvatarSolver
-from server.busy import OpenBursts
+from server.busy import OpenBursts, WarmPath
 from server.cadence import MAX_PERIOD_S, Cadence
 from server.metrics import Metrics
 from server.room import Avatar, Room
@@ -133,3 +133,23 @@ def test_a_tick_early_for_everyone_still_makes_one_burst(session: Session,
     tick 6 ms early for both players (a timer, a busy client machine) moves both."""
     awaited, _, _ = _burst(session, recording, window=0.004, due_2=0.002, early=0.006)
     assert awaited == {2}
+
+
+def test_warm_path_runs_a_frame_in_three_short_phases(session: Session,
+                                                      recording: ViveRecording) -> None:
+    """The twin's path runs a third at a time (decode + stage, solve, encode), so a
+    frame that arrives meanwhile waits for one phase at most; nothing runs before the
+    server has seen a calibration and a frame."""
+    rec = recording
+    warm = WarmPath(session.rig, session.solver_name)
+    warm.step()
+    assert warm.steps == 0 and warm._phase == 0  # nothing to run yet
+    t_pose = np.concatenate([rec.positions[0], rec.rotations[0]], axis=1)
+    warm.calibrate(rec.devices, t_pose)
+    warm.frame = encode(_frame(rec, 7))
+    before = warm.solver._rotations[0].copy()
+    for phase in (1, 2, 0):
+        warm.step()
+        assert warm._phase == phase
+    assert warm.steps == 1
+    assert not np.array_equal(warm.solver._rotations[0], before)  # it did solve the twin
