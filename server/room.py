@@ -70,10 +70,12 @@ Delivery = tuple[SharedBatch, int]  # a batch and the index of one avatar in it
 # read before they decode: 0.4 ms still gives the lower server tail and the higher
 # end-to-end one (alternated 20 s runs: p99 server 1.18 / 1.25 / 1.13 against 1.47 /
 # 1.24 / 1.38 ms, capture-to-spectator 3.29 / 3.58 / 3.11 against 3.09 / 2.52 / 2.92).
-# With busy polling and bursts kept open for the players due (Cadence), 0.5 and 0.7 ms
-# measured alike within this machine's noise (10 s runs, p99 server 1.01 / 0.98 against
-# 1.07 / 1.24, capture-to-spectator 3.11 / 2.36 against 2.04 / 3.06): 0.7 stays
-COALESCE_MAX_S = 0.0007
+# With busy polling and bursts kept open for the players due (Cadence), the window only
+# ends the slow bursts, and a longer one keeps them whole. Six alternated pairs of 10 s
+# runs, 0.9 against 0.7 ms: p99 server alike (median 1.39 against 1.38 ms), p99
+# capture-to-spectator 2.67 against 2.88 ms (median), ~1.03 batches a tick against ~1.2.
+# 0.55 ms was worse on both (four pairs: p99 server 1.35-1.58 against 1.22-1.47 ms)
+COALESCE_MAX_S = 0.0009
 
 
 @dataclass
