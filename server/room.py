@@ -71,11 +71,13 @@ Delivery = tuple[SharedBatch, int]  # a batch and the index of one avatar in it
 # end-to-end one (alternated 20 s runs: p99 server 1.18 / 1.25 / 1.13 against 1.47 /
 # 1.24 / 1.38 ms, capture-to-spectator 3.29 / 3.58 / 3.11 against 3.09 / 2.52 / 2.92).
 # With busy polling and bursts kept open for the players due (Cadence), the window only
-# ends the slow bursts, and a longer one keeps them whole. Six alternated pairs of 10 s
-# runs, 0.9 against 0.7 ms: p99 server alike (median 1.39 against 1.38 ms), p99
-# capture-to-spectator 2.67 against 2.88 ms (median), ~1.03 batches a tick against ~1.2.
-# 0.55 ms was worse on both (four pairs: p99 server 1.35-1.58 against 1.22-1.47 ms)
-COALESCE_MAX_S = 0.0009
+# ends the slow bursts. 0.9 ms kept more of them whole: six alternated pairs of 10 s runs
+# of the 16 + 16 demo gave p99 capture-to-spectator 2.67 against 2.88 ms (median) and
+# the same p99 server; but larger rooms' first frames then wait longer, and `bench
+# server` failed its 2 ms at 24 players (2.03 / 2.22 ms, against 1.85 / 1.80 ms and 32
+# players sustained at 0.7). 0.55 ms was worse on both (four pairs of the demo: p99
+# server 1.35-1.58 against 1.22-1.47 ms). 0.7 stays
+COALESCE_MAX_S = 0.0007
 
 
 @dataclass
