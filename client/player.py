@@ -80,7 +80,7 @@ class Ticker:
     calls them one after the other, so their frames leave together, to be solved in one
     batch, with no task switch between one player's frame and the next (a task per
     player woken by a future spread 16 frames over ~0.7 ms, ~45 us each). A callback
-    must not raise.
+    that raises is logged; the others keep their schedule.
     """
 
     def __init__(self, rate_hz: float, start: float | None = None,
@@ -141,7 +141,10 @@ class Ticker:
             return
         self.last = k
         for callback in list(self._subscribers):  # one may unsubscribe in its call
-            callback(k)
+            try:
+                callback(k)
+            except Exception:  # a broken subscriber must not stop the others' schedule
+                log.exception("ticker: a slot callback failed")
         self._timer = None
         if self._subscribers:
             self._arm()

@@ -198,7 +198,13 @@ def test_shared_ticker_calls_every_player_on_one_slot() -> None:
         ticker = Ticker(50.0)
         calls: list[tuple[int, int]] = []
         callbacks = [lambda k, i=i: calls.append((i, k)) for i in range(5)]
-        for c in callbacks:
+
+        def broken(k: int) -> None:
+            raise RuntimeError("a bug in one player")
+
+        ticker.subscribe(callbacks[0])
+        ticker.subscribe(broken)  # logged; the others keep their schedule
+        for c in callbacks[1:]:
             ticker.subscribe(c)
         await asyncio.sleep(0.03)  # slot 0 at once, slot 1 after 20 ms
         assert calls == [(i, k) for k in (0, 1) for i in range(5)]  # in order, together
@@ -206,7 +212,7 @@ def test_shared_ticker_calls_every_player_on_one_slot() -> None:
         calls.clear()
         await asyncio.sleep(0.02)
         assert calls == [(i, 2) for i in range(1, 5)]
-        for c in callbacks[1:]:
+        for c in [*callbacks[1:], broken]:
             ticker.unsubscribe(c)
         assert ticker._timer is None  # nobody left: no timer
 
