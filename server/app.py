@@ -38,7 +38,7 @@ from protocol import (
 )
 from protocol.arrivals import ArrivalStamps, arrival_time
 from server.avatars import AvatarSolver
-from server.busy import OpenBursts, WarmPath, busy_poll
+from server.busy import BusyPoll
 from server.clock import now
 from server.metrics import Metrics
 from server.outbox import Outbox
@@ -69,8 +69,7 @@ class Session:
         self.metrics = Metrics()
         self._ids = itertools.count(1)
         self._owners: dict[int, ServerConnection] = {}  # avatar id -> its live connection
-        self.bursts = OpenBursts() if busy else None
-        self.warm = WarmPath(self.rig, solver) if busy else None
+        self.busy = BusyPoll(self.rig, solver) if busy else None
         # before serving: a first join must not wait for the compiled solver to load
         AvatarSolver(self.rig, solver).warm_up()
         # solve on the event loop's own thread: a batch of a room is tens of avatars, and
@@ -81,7 +80,8 @@ class Session:
     def room(self, name: str) -> Room:
         if name not in self.rooms:  # rooms are created on first join
             self.rooms[name] = Room(name, AvatarSolver(self.rig, self.solver_name),
-                                    self.metrics, bursts=self.bursts)
+                                    self.metrics,
+                                    bursts=self.busy.bursts if self.busy else None)
         return self.rooms[name]
 
     async def handle(self, ws: ServerConnection) -> None:
@@ -150,8 +150,8 @@ class Session:
                         room.submit(avatar.avatar_id, msg, t_received)
                     elif isinstance(msg, Calibrate):
                         room.calibrate(avatar, msg.roles, msg.poses)
-                        if self.warm is not None:
-                            self.warm.calibrate(msg.roles, msg.poses)
+                        if self.busy is not None:
+                            self.busy.warm.calibrate(msg.roles, msg.poses)
                     else:
                         await self._common(ws, msg, t_received, "player")
                 except ProtocolError as err:
@@ -184,8 +184,8 @@ class Session:
         except (ProtocolError, ValueError):
             return False
         self.metrics.frames_received += 1
-        if self.warm is not None:
-            self.warm.frame = data
+        if self.busy is not None:
+            self.busy.warm.frame = data
         return True
 
     def _forget_later(self, room: Room, avatar: Avatar) -> None:
@@ -275,8 +275,8 @@ async def run_server(host: str, port: int, session: Session | None = None,
         log.info("posecast server on ws://%s:%d", host, bound)
         if ready is not None:
             ready(bound)
-        poller = (loop.create_task(busy_poll(session.warm, session.bursts, stop))
-                  if session.warm is not None and session.bursts is not None else None)
+        poller = (loop.create_task(session.busy.run(stop))
+                  if session.busy is not None else None)
         try:
             await stop.wait()
         finally:

@@ -104,22 +104,31 @@ class WarmPath:
         self._phase = (self._phase + 1) % 3
 
 
-async def busy_poll(warm: WarmPath, bursts: OpenBursts, stop: asyncio.Event) -> None:
-    """Keep the event loop polling, and ``warm`` stepping, until ``stop``; pause while a
-    burst is open. A step that fails (it cannot, short of a bug) turns warming off and
-    leaves the polling."""
-    warming = True
-    next_phase = 0.0
-    while not stop.is_set():
-        if bursts.count:
-            await bursts.none_open.wait()
-            continue
-        t = time.perf_counter()
-        if warming and t >= next_phase:
-            next_phase = t + WARM_PHASE_INTERVAL_S
-            try:
-                warm.step()
-            except Exception:  # never let the warm-up hurt the server
-                log.exception("busy polling: the warm-up step failed; polling on without it")
-                warming = False
-        await asyncio.sleep(0)  # one pass of the loop: reads, timers, other tasks
+class BusyPoll:
+    """A server's busy polling: the count of open bursts its rooms keep, the twin it
+    warms, and the loop that does both (``run``)."""
+
+    def __init__(self, rig: Rig, solver: str) -> None:
+        self.bursts = OpenBursts()
+        self.warm = WarmPath(rig, solver)
+
+    async def run(self, stop: asyncio.Event) -> None:
+        """Keep the event loop polling, and the twin stepping, until ``stop``; pause
+        while a burst is open. A step that fails (it cannot, short of a bug) turns
+        warming off and leaves the polling."""
+        warming = True
+        next_phase = 0.0
+        while not stop.is_set():
+            if self.bursts.count:
+                await self.bursts.none_open.wait()
+                continue
+            t = time.perf_counter()
+            if warming and t >= next_phase:
+                next_phase = t + WARM_PHASE_INTERVAL_S
+                try:
+                    self.warm.step()
+                except Exception:  # never let the warm-up hurt the server
+                    log.exception("busy polling: the warm-up step failed; polling on "
+                                  "without it")
+                    warming = False
+            await asyncio.sleep(0)  # one pass of the loop: reads, timers, other tasks

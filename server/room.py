@@ -162,7 +162,8 @@ class Room:
         avatar = self.avatars.get(avatar_id)
         due = None
         if avatar is not None:
-            due = avatar.cadence.due()
+            if not self._scheduled:  # this frame opens a burst: when was it due?
+                due = avatar.cadence.due()
             avatar.cadence.arrived(t_received)
         if not self._scheduled:
             self._scheduled = True
