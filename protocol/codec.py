@@ -19,7 +19,15 @@ from pydantic import BaseModel, ValidationError
 
 from protocol.batch import AvatarBatch, avatar_batch_from_wire, avatar_batch_wire
 from protocol.errors import ErrorCode, ProtocolError
-from protocol.messages import CLIENT_MESSAGES, MESSAGE_TYPES, ClientMessage, Message, TrackerFrame
+from protocol.messages import (
+    CLIENT_MESSAGES,
+    MESSAGE_TYPES,
+    ClientMessage,
+    Message,
+    TrackerFrame,
+    TrackerPoses,
+    tracker_poses_from_wire,
+)
 from protocol.validation import (
     MAX_CLIENT_MESSAGE_BYTES,
     MAX_MESSAGE_BYTES,
@@ -45,6 +53,20 @@ def decode(data: bytes | bytearray | memoryview | str, *,
 def decode_client(data: bytes | bytearray | memoryview | str) -> ClientMessage:
     """What a server reads: a client message, at most MAX_CLIENT_MESSAGE_BYTES."""
     return _decode(data, MAX_CLIENT_MESSAGE_BYTES, _CLIENT_TYPES)  # type: ignore[return-value]
+
+
+def decode_tracker_poses(data: bytes | bytearray | memoryview) -> TrackerPoses | None:
+    """A server's hot path: the bytes of a well-formed tracker frame -> its checked
+    content (``tracker_poses_from_wire``), or None for anything else (another message,
+    anything wrong or unusual); ``decode_client`` then reads it, or says what is wrong.
+    """
+    if len(data) > MAX_CLIENT_MESSAGE_BYTES:
+        return None
+    try:
+        obj = msgpack.unpackb(data, raw=False, strict_map_key=True)
+    except Exception:  # any of msgpack's errors: decode_client names it
+        return None
+    return tracker_poses_from_wire(obj) if type(obj) is dict else None
 
 
 def _decode(data: Any, max_bytes: int, allowed: frozenset[str] | None) -> BaseModel:

@@ -22,7 +22,9 @@ log the client's offset (a jump in it shows up), and costs 9 bytes.
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+import functools
+import math
+from typing import Annotated, Any, Literal, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -42,6 +44,7 @@ from protocol.model import Model, first_duplicate
 from protocol.roles import CALIBRATION_ROLES, DEVICE_ROLES, DeviceRole
 from protocol.validation import (
     MAX_AVATARS,
+    MAX_INT,
     MAX_JOINTS,
     Int,
     Name,
@@ -52,6 +55,7 @@ from protocol.validation import (
     Token,
     as_rows,
     check_positions,
+    checked_poses,
     device_poses,
     is_wire,
     readonly,
@@ -217,6 +221,62 @@ class TrackerFrame(_DevicePoses):
 
     type: Literal["tracker_frame"] = "tracker_frame"
     seq: Int  # per connection, increasing; echoed in the AvatarFrame solved from it
+
+
+class TrackerPoses(NamedTuple):
+    """A tracker frame checked exactly as TrackerFrame checks it, without building the
+    model (``tracker_poses_from_wire``): what a server's hot path reads."""
+
+    seq: int
+    roles: tuple[str, ...]
+    poses: Array  # (D, 7) read-only, quaternions normalised, as TrackerFrame.poses
+    t_capture: float
+    clock_offset: float
+
+    @property
+    def t_capture_server(self) -> float:
+        return self.t_capture + self.clock_offset
+
+
+_TRACKER_FIELDS = frozenset(TrackerFrame.model_fields)
+_KNOWN_ROLES = frozenset(DEVICE_ROLES)
+
+
+# bounded: the roles come from clients; a player sends the same ones every frame
+@functools.lru_cache(maxsize=256)
+def _valid_roles(roles: tuple[Any, ...]) -> bool:
+    """TrackerFrame's rules for roles: known, distinct, one to len(DEVICE_ROLES)."""
+    return (1 <= len(roles) <= len(DEVICE_ROLES) and all(r in _KNOWN_ROLES for r in roles)
+            and first_duplicate(roles) is None)
+
+
+def tracker_poses_from_wire(obj: dict[str, Any]) -> TrackerPoses | None:
+    """The wire map of a well-formed TrackerFrame checked in one pass, or None when
+    anything is unusual; ``TrackerFrame.model_validate`` then says what. It accepts only
+    what the model accepts, with the same values: a property test holds the two equal.
+    Every frame a server reads comes this way: with msgpack, 4.0 us against 7.3 for
+    ``decode_client`` (hot, this machine), and in the 16 + 16 demo p99 server 1.02 /
+    1.24 / 1.06 ms against 1.41 / 1.29 / 1.26 (three alternated 10 s pairs).
+    """
+    if obj.keys() != _TRACKER_FIELDS or obj["type"] != "tracker_frame":
+        return None
+    seq, roles, data = obj["seq"], obj["roles"], obj["poses"]
+    t_capture, clock_offset = obj["t_capture"], obj["clock_offset"]
+    if (type(seq) is not int or not 0 <= seq <= MAX_INT or type(t_capture) is not float
+            or type(clock_offset) is not float or not math.isfinite(t_capture)
+            or not math.isfinite(clock_offset) or type(roles) is not list
+            or type(data) is not bytes or len(data) != 56 * len(roles)):
+        return None
+    try:
+        role_tuple = tuple(roles)
+        if not _valid_roles(role_tuple):
+            return None
+    except TypeError:  # an unhashable role (a list, a map)
+        return None
+    poses = np.empty((len(roles), 7))
+    if not checked_poses(np.frombuffer(data, "<f8").reshape(-1, 7), poses):
+        return None
+    return TrackerPoses(seq, role_tuple, readonly(poses), t_capture, clock_offset)
 
 
 class Calibrate(_DevicePoses):

@@ -37,6 +37,7 @@ from protocol import (
     encode,
 )
 from protocol.arrivals import ArrivalStamps, arrival_time
+from protocol.codec import decode_tracker_poses
 from server.avatars import AvatarSolver
 from server.busy import BusyPoll
 from server.clock import now
@@ -176,12 +177,12 @@ class Session:
         valid tracker frame of a calibrated avatar goes to the room at once, without
         waiting for the handler task's turn. Anything else (other messages, anything
         wrong) returns False and takes the handler's way, which replies to it."""
+        frame = decode_tracker_poses(data)
+        if frame is None or not room.is_calibrated(avatar.avatar_id):
+            return False
         try:
-            msg = decode_client(data)
-            if not (isinstance(msg, TrackerFrame) and room.is_calibrated(avatar.avatar_id)):
-                return False
-            room.submit(avatar.avatar_id, msg, t_received)
-        except (ProtocolError, ValueError):
+            room.submit(avatar.avatar_id, frame, t_received)
+        except ValueError:  # the solver refused the poses: the handler's way explains
             return False
         self.metrics.frames_received += 1
         if self.busy is not None:

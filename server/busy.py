@@ -22,8 +22,8 @@ import time
 
 import numpy as np
 
-from protocol import TrackerFrame, decode_client
-from protocol.codec import encode_avatar_batch
+from protocol.codec import decode_tracker_poses, encode_avatar_batch
+from protocol.messages import TrackerPoses
 from server.avatars import AvatarSolver
 from solver.ik import PoseBatch
 from solver.rig import Rig
@@ -68,7 +68,7 @@ class WarmPath:
         self.frame: bytes | bytearray | memoryview | None = None  # the latest one seen
         self.steps = 0  # whole frames run
         self._phase = 0
-        self._msg: TrackerFrame | None = None
+        self._msg: TrackerPoses | None = None
         self._solved: PoseBatch | None = None
 
     @property
@@ -87,8 +87,8 @@ class WarmPath:
         if self._phase == 0:
             if self.frame is None or not self.calibrated:
                 return
-            msg = decode_client(self.frame)
-            if not isinstance(msg, TrackerFrame):
+            msg = decode_tracker_poses(self.frame)  # the server's own hot path
+            if msg is None:
                 return
             self.solver.stage(TWIN, msg.roles, msg.poses)
             self._msg = msg

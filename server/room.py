@@ -25,6 +25,7 @@ from websockets.asyncio.server import ServerConnection, broadcast
 from protocol import AvatarBatch, AvatarFrame, AvatarInfo, AvatarRoster, TrackerFrame, encode
 from protocol.arrivals import ArrivalStamps
 from protocol.codec import encode_avatar_batch
+from protocol.messages import TrackerPoses
 from server.avatars import AvatarSolver
 from server.busy import OpenBursts
 from server.cadence import Cadence
@@ -119,7 +120,7 @@ class Room:
     metrics: Metrics
     avatars: dict[int, Avatar] = field(default_factory=dict)
     spectators: dict[int, Spectator] = field(default_factory=dict)
-    _pending: dict[int, tuple[TrackerFrame, float]] = field(default_factory=dict)
+    _pending: dict[int, tuple[TrackerFrame | TrackerPoses, float]] = field(default_factory=dict)
     coalesce_max_s: float = COALESCE_MAX_S
     # the server's count of open bursts, when it busy-polls (server.busy): it pauses
     # while one is open
@@ -149,7 +150,8 @@ class Room:
     def is_calibrated(self, avatar_id: int) -> bool:
         return avatar_id in self.solver.calibrations
 
-    def submit(self, avatar_id: int, frame: TrackerFrame, t_received: float) -> None:
+    def submit(self, avatar_id: int, frame: TrackerFrame | TrackerPoses,
+               t_received: float) -> None:
         """Queue a player's frame (latest wins) and make sure a solve is coming. Its
         targets are computed now, while the rest of the burst is still arriving; a
         ValueError (a driving device missing) rejects this frame alone."""

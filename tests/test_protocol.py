@@ -42,7 +42,9 @@ from protocol import (
     rotation_angle,
 )
 from protocol.batch import avatar_batch_from_wire
+from protocol.codec import decode_tracker_poses
 from protocol.measure import sample_avatar_batch, sample_tracker_frame
+from protocol.messages import tracker_poses_from_wire
 from protocol.validation import (
     MAX_AVATARS,
     MAX_POSITION_M,
@@ -696,3 +698,100 @@ def test_direct_batch_encoder_gives_the_model_bytes() -> None:
         bad[2, 7, 1] = np.nan
         encode_avatar_batch(*args[:3], bad, *args[4:])
 
+
+
+# --------------------------------------------------------------------------- the server's
+# one-pass tracker frame check: never accepts what TrackerFrame refuses, and gives its values
+_POSE_SPECIAL = [math.nan, math.inf, -math.inf, 1001.0, -999.0, 0.0, 1.0, 1.0 + 1e-4,
+                 1.0 + 3e-3, 0.5]
+
+
+@st.composite
+def corrupted_tracker_frames(draw: st.DrawFn) -> dict[str, Any]:
+    """The wire map of a valid tracker frame, left alone or corrupted in one of many ways."""
+    roles = tuple(draw(st.permutations(DEVICE_ROLES))[:draw(st.integers(1, len(DEVICE_ROLES)))])
+    obj = wire(sample_tracker_frame(roles, seed=draw(st.integers(0, 3))))
+    kind = draw(st.sampled_from(["none", "pose", "bytes", "length", "roles", "duplicate",
+                                 "type", "keys", "seq", "time"]))
+    n = len(roles)
+    if kind == "pose":
+        poses = np.frombuffer(obj["poses"], "<f8").copy().reshape(n, 7)
+        poses[draw(st.integers(0, n - 1)), draw(st.integers(0, 6))] = draw(
+            st.sampled_from(_POSE_SPECIAL))
+        obj["poses"] = poses.tobytes()
+    elif kind == "duplicate" and n > 1:  # a role twice, the pose rows still matching
+        i, j = draw(st.lists(st.integers(0, n - 1), min_size=2, max_size=2, unique=True))
+        obj["roles"][i] = obj["roles"][j]
+    elif kind == "bytes":
+        obj["poses"] = draw(st.binary(min_size=56 * n, max_size=56 * n))
+    elif kind == "length":
+        obj["poses"] = obj["poses"][:draw(st.integers(0, 56 * n - 1))]
+    elif kind == "roles":  # one role replaced (the pose rows still match), or odd lists
+        changed = list(obj["roles"])
+        changed[draw(st.integers(0, n - 1))] = draw(st.sampled_from(
+            [*DEVICE_ROLES, "tail", "", 1, None, ["head"], b"hip"]))
+        obj["roles"] = draw(st.sampled_from([
+            changed, [], [*obj["roles"], "hip"], "head", [*DEVICE_ROLES, "head"],
+            list(reversed(obj["roles"]))]))
+    elif kind == "type":
+        obj[draw(st.sampled_from(["roles", "poses", "seq", "t_capture", "clock_offset",
+                                  "type"]))] = draw(st.sampled_from(
+                                      [None, 7, 7.5, "x", True, [1.0], b"\x00" * 56]))
+    elif kind == "keys":
+        if draw(st.booleans()):
+            del obj[draw(st.sampled_from(sorted(obj)))]
+        else:
+            obj["extra"] = 1
+    elif kind == "seq":
+        obj["seq"] = draw(st.sampled_from([-1, 0, 2**63 - 1, 2**63, True, 1.0]))
+    elif kind == "time":
+        obj[draw(st.sampled_from(["t_capture", "clock_offset"]))] = draw(
+            st.sampled_from([math.nan, math.inf, -math.inf, 3, "1.0", -2.5, 1e300]))
+    return obj
+
+
+def _tracker_check_agrees(obj: dict[str, Any]) -> bool:
+    """True when the one-pass check accepted: then the model accepts too, equal."""
+    fast = tracker_poses_from_wire(dict(obj))
+    try:
+        slow: TrackerFrame | None = TrackerFrame.model_validate(obj, context={"wire": True})
+    except ValidationError:
+        slow = None
+    if fast is None:
+        return False
+    assert slow is not None
+    assert (fast.seq, fast.roles, fast.t_capture, fast.clock_offset) == \
+        (slow.seq, slow.roles, slow.t_capture, slow.clock_offset)
+    assert fast.t_capture_server == slow.t_capture_server
+    assert np.array_equal(fast.poses, slow.poses) and not fast.poses.flags.writeable
+    return True
+
+
+@settings(max_examples=500, deadline=None)
+@given(corrupted_tracker_frames())
+def test_one_pass_tracker_check_accepts_only_what_the_model_accepts(obj: dict[str, Any],
+                                                                    ) -> None:
+    _tracker_check_agrees(obj)
+
+
+def test_one_pass_tracker_check_takes_every_usual_frame() -> None:
+    """Whatever a player sends (any roles, quaternions a little off unit) takes the hot
+    path; a frame it refuses still reaches decode_client, which names the fault."""
+    for k in range(1, len(DEVICE_ROLES) + 1):
+        frame = sample_tracker_frame(DEVICE_ROLES[-k:], seed=k)
+        assert _tracker_check_agrees(wire(frame))
+        fast = decode_tracker_poses(encode(frame))
+        assert fast is not None and fast.roles == frame.roles
+    obj = wire(sample_tracker_frame())
+    poses = np.frombuffer(obj["poses"], "<f8").copy().reshape(-1, 7)
+    poses[2, 3:] *= 1.0 + 0.4 * QUAT_NORM_TOLERANCE  # off unit within tolerance: normalised
+    obj["poses"] = poses.tobytes()
+    assert _tracker_check_agrees(obj)
+    assert np.allclose(np.linalg.norm(tracker_poses_from_wire(obj).poses[:, 3:], axis=1), 1.0)
+    poses[2, 0] = math.nan
+    bad = msgpack.packb({**obj, "poses": poses.tobytes()})
+    assert decode_tracker_poses(bad) is None
+    rejects(bad, "tracker_frame.poses", "row 2 (left_hand) position[0] is nan")
+    for other in (b"\xc1", msgpack.packb([1, 2]), encode(Ping(t0=1.0)),
+                  b"\x00" * (MAX_CLIENT_MESSAGE_BYTES + 1)):
+        assert decode_tracker_poses(other) is None
