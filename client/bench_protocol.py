@@ -31,6 +31,7 @@ def worst_quantization_deg(samples: int = 1_000_000, seed: int = 0) -> float:
 def bench_protocol() -> dict[str, object]:
     batch = time_avatar_batch(16)
     tracker = time_decode_tracker_frame()
+    model = time_decode_tracker_frame(model=True)
     return {"joints": MAKEHUMAN_JOINTS,
             "bytes_per_avatar_frame": round(bytes_per_avatar_frame(), 1),
             "tracker_frame_bytes": tracker_frame_bytes(),
@@ -38,6 +39,8 @@ def bench_protocol() -> dict[str, object]:
             "quantization_bound_deg": round(MAX_ANGLE_ERROR_DEG, 4),
             "decode_tracker_frame_us": {"p50": round(tracker.median_us, 2),
                                         "p99": round(tracker.p99_us, 2)},
+            "decode_tracker_frame_model_us": {"p50": round(model.median_us, 2),
+                                              "p99": round(model.p99_us, 2)},
             "batch16_build_encode_us": {"p50": round(batch["build_encode"].median_us, 1),
                                         "p99": round(batch["build_encode"].p99_us, 1)},
             "batch16_decode_us": {"p50": round(batch["decode"].median_us, 1),

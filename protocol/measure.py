@@ -14,7 +14,13 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol.codec import decode, decode_client, encode, encode_avatar_batch
+from protocol.codec import (
+    decode,
+    decode_client,
+    decode_tracker_poses,
+    encode,
+    encode_avatar_batch,
+)
 from protocol.messages import AvatarBatch, TrackerFrame
 from protocol.roles import DEVICE_ROLES, DeviceRole
 
@@ -82,10 +88,17 @@ def bytes_per_avatar_frame(num_joints: int = MAKEHUMAN_JOINTS, avatars: int = 16
 
 
 def time_decode_tracker_frame(runs: int = 20000,
-                              roles: tuple[DeviceRole, ...] = DEVICE_ROLES) -> Timing:
-    """decode + validate one tracker frame, as the server does (``decode_client``)."""
+                              roles: tuple[DeviceRole, ...] = DEVICE_ROLES,
+                              model: bool = False) -> Timing:
+    """decode + validate one tracker frame as the server does (``decode_tracker_poses``),
+    or with ``model`` into the pydantic TrackerFrame (``decode_client``, what the server
+    falls back to for anything unusual)."""
     data = encode(sample_tracker_frame(roles))
-    return time_calls(lambda: decode_client(data), runs)
+    if model:
+        return time_calls(lambda: decode_client(data), runs)
+    frame = decode_tracker_poses(data)
+    assert frame is not None, "a well-formed frame takes the server's hot path"
+    return time_calls(lambda: decode_tracker_poses(data), runs)
 
 
 def time_avatar_batch(avatars: int = 16, num_joints: int = MAKEHUMAN_JOINTS,
