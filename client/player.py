@@ -41,9 +41,9 @@ log = logging.getLogger(__name__)
 
 # --------------------------------------------------------------------------- messages
 def device_poses(sample: DeviceSample) -> NDArray[np.float64]:
-    """(D, 7) rows of position (metres) | quaternion x y z w, as the protocol wants."""
-    return np.concatenate([np.asarray(sample.positions, dtype=np.float64),
-                           np.asarray(sample.rotations, dtype=np.float64)], axis=1)
+    """(D, 7) rows of position (metres) | quaternion x y z w, as the protocol wants: the
+    sample's own rows (the messages copy them)."""
+    return sample.poses
 
 
 def _roles(sample: DeviceSample) -> tuple[DeviceRole, ...]:

@@ -233,8 +233,7 @@ def _sample(seed: int = 0, roles: tuple[str, ...] = ROLES) -> DeviceSample:
     rng = np.random.default_rng(seed)
     q = rng.normal(size=(len(roles), 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
-    return DeviceSample(t_capture=12345.678901234, roles=roles,
-                        positions=rng.uniform(-2, 2, (len(roles), 3)), rotations=q)
+    return DeviceSample.of(12345.678901234, roles, rng.uniform(-2, 2, (len(roles), 3)), q)
 
 
 def test_tracker_frame_from_a_sample_round_trips_exactly() -> None:

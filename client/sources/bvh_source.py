@@ -76,6 +76,9 @@ class BvhSource:
         shift = np.array([offset[0], 0.0, offset[1]])
         self.positions += shift
         self.tpose_positions = self.tpose_positions + shift
+        # every frame's rows as a player sends them (position | quaternion)
+        self.poses = np.concatenate([self.positions, self.rotations], axis=2)
+        self.positions, self.rotations = self.poses[..., :3], self.poses[..., 3:]
         # a headset samples at its own rate (90 Hz for a Vive), not the capture's: replay
         # at rate_hz by stepping through the clip by time, nearest frame
         self.rate_hz = float(rate_hz or motion.fps)
@@ -116,8 +119,7 @@ class BvhSource:
         return int(self.positions.shape[0])
 
     def calibration(self) -> DeviceSample:
-        return DeviceSample(now(), ROLES, self.tpose_positions.copy(),
-                            self.tpose_rotations.copy())
+        return DeviceSample.of(now(), ROLES, self.tpose_positions, self.tpose_rotations)
 
     def read(self) -> DeviceSample | None:
         if self.next_frame >= self.num_frames:
@@ -129,7 +131,7 @@ class BvhSource:
         if round(self._position) >= self.num_frames and self.loop:
             self._position -= self.num_frames
         self.next_frame = round(self._position)
-        return DeviceSample(now(), ROLES, self.positions[f].copy(), self.rotations[f].copy())
+        return DeviceSample(now(), ROLES, self.poses[f].copy())
 
     def close(self) -> None:
         pass

@@ -214,7 +214,7 @@ class OpenVRSource:
               & (sel["result"] == openvr.TrackingResult_Running_OK))
         pos, rot = poses_from_matrices(sel["m"][ok])
         roles = tuple(r for r, keep in zip(self._roles, ok, strict=True) if keep)
-        return DeviceSample(t, roles, pos, rot)
+        return DeviceSample.of(t, roles, pos, rot)
 
     def calibration(self) -> DeviceSample:
         """The current sample, once head, hip, hands and feet are all tracked."""

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from client.sources.base import ROLES, DeviceSample, SourceError, now
 from solver.readers.vive import VIVE_FPS, read_vive
 
@@ -29,8 +31,10 @@ class ViveFileSource:
                               f"one more, found {rec.num_frames}")
         order = [rec.device(r) for r in ROLES if r in rec.devices]  # one role order everywhere
         self.roles = tuple(rec.devices[d] for d in order)
-        self.positions = rec.positions[:, order]
-        self.rotations = rec.rotations[:, order]
+        # every frame's rows as a player sends them (position | quaternion)
+        self.poses = np.concatenate([rec.positions[:, order], rec.rotations[:, order]],
+                                    axis=2)
+        self.positions, self.rotations = self.poses[..., :3], self.poses[..., 3:]
         self.rate_hz = float(rate_hz)
         self.loop = loop
         self.next_frame = 1
@@ -40,8 +44,7 @@ class ViveFileSource:
         return int(self.positions.shape[0])
 
     def _sample(self, f: int) -> DeviceSample:
-        return DeviceSample(now(), self.roles, self.positions[f].copy(),
-                            self.rotations[f].copy())
+        return DeviceSample(now(), self.roles, self.poses[f].copy())
 
     def calibration(self) -> DeviceSample:
         return self._sample(0)
