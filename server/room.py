@@ -77,7 +77,13 @@ Delivery = tuple[SharedBatch, int]  # a batch and the index of one avatar in it
 # the same p99 server; but larger rooms' first frames then wait longer, and `bench
 # server` failed its 2 ms at 24 players (2.03 / 2.22 ms, against 1.85 / 1.80 ms and 32
 # players sustained at 0.7). 0.55 ms was worse on both (four pairs of the demo: p99
-# server 1.35-1.58 against 1.22-1.47 ms). 0.7 stays
+# server 1.35-1.58 against 1.22-1.47 ms). Shorter windows split every burst in two:
+# 0.25 ms met the server's 1 ms in quiet 10 s runs of the demo (p99 0.81-1.01 against
+# 1.21-1.46 ms at 0.7, round robin) but each spectator got two messages a tick, and
+# p99 capture-to-spectator rose by 0.1-1.3 ms (2.3-4.1 against 2.1-3.3); in `bench
+# server` it was 4.7-4.9 against 2.4-3.0 ms at 16 + 16, and at 32 + 32 the spectators
+# fell 0.26-1.2 s behind. 0.35 ms gave a mix of one and two batches, worse than either.
+# End-to-end latency is what a player sees: 0.7 stays
 COALESCE_MAX_S = 0.0007
 
 
@@ -210,6 +216,12 @@ class Room:
 
     # ------------------------------------------------------------------ solving
     def solve_pending(self) -> None:
+        # the whole burst in one call. Solving the frames staged so far while the burst
+        # is still open was tried (alternated 10 s demo runs): on passes of the loop that
+        # read nothing it rarely ran (in 23% of the bursts; the server reads a frame about
+        # every pass) and moved p99 server both ways (1.19 / 0.95 / 0.93 / 1.21 against
+        # 1.07 / 1.13 / 0.97 / 1.01 ms); on every pass it put the reads behind the players
+        # (p50 capture-to-server 0.29 against ~0.1 ms) and p99 server went to 1.38 ms
         if self._scheduled and self.bursts is not None:
             self.bursts.closed()
         self._scheduled = False
