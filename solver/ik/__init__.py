@@ -17,6 +17,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -107,20 +108,21 @@ class Solver:
         if offsets is None:
             offsets = self.rig.skeleton.offsets[None]
         o = self.options
+        serial = numba.get_num_threads() == 1  # see PARALLEL_MIN_AVATARS
         if self.name == "analytic":
             solve_analytic_batch(a.parents, offsets, a.canonical, a.pre, a.post, a.lo, a.hi,
                                  a.dofmask, a.pelvis, a.chains, a.lengths, targets,
                                  state.rotations, state.root, o.rotation_weight,
                                  self.damping, self.max_iterations, o.epsilon,
-                                 state.iterations)
+                                 state.iterations, serial)
         elif self.name == "dls":
             solve_dls_batch(a.parents, offsets, a.pre, a.post, a.lo, a.hi, a.dofmask,
                             a.pelvis, a.chains, a.lengths, targets, state.rotations,
                             state.root, o.rotation_weight, self.damping,
-                            self.max_iterations, o.epsilon, state.iterations)
+                            self.max_iterations, o.epsilon, state.iterations, serial)
         else:
             solve_paper_batch(a.parents, offsets, a.pre, a.post, a.lo, a.hi, a.dofmask,
                               a.pelvis, a.paper_chains, a.paper_lengths, targets,
                               state.rotations, state.root, self.damping,
                               self.max_iterations, o.epsilon, self.step_limit,
-                              state.iterations)
+                              state.iterations, serial)

@@ -497,11 +497,11 @@ def solve_analytic_range(parents, offsets, canon, pre, post, lo, hi, dofmask, pe
 @njit(cache=True, parallel=True)
 def solve_analytic_batch(parents, offsets, canon, pre, post, lo, hi, dofmask, pelvis,
                          chains, lengths, targets, q, root, w_rot, lam, refine, eps,
-                         iterations):
+                         iterations, serial):
     # avatars are independent: spread over the cores (see PARALLEL_MIN_AVATARS); the
     # bounds are int64 in both calls so that they share one compiled version
     B = q.shape[0]
-    if B < PARALLEL_MIN_AVATARS:
+    if serial or B < PARALLEL_MIN_AVATARS:
         solve_analytic_range(parents, offsets, canon, pre, post, lo, hi, dofmask, pelvis,
                              chains, lengths, targets, q, root, w_rot, lam, refine, eps,
                              iterations, np.int64(0), B)

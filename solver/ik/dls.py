@@ -37,11 +37,11 @@ def solve_dls_range(parents, offsets, pre, post, lo, hi, dofmask, pelvis, chains
 @njit(cache=True, parallel=True)
 def solve_dls_batch(parents, offsets, pre, post, lo, hi, dofmask, pelvis, chains,
                     lengths, targets, q, root, w_rot, lam, max_iter, eps,
-                    iterations):
+                    iterations, serial):
     # avatars are independent: spread over the cores (see PARALLEL_MIN_AVATARS); the
     # bounds are int64 in both calls so that they share one compiled version
     B = q.shape[0]
-    if B < PARALLEL_MIN_AVATARS:
+    if serial or B < PARALLEL_MIN_AVATARS:
         solve_dls_range(parents, offsets, pre, post, lo, hi, dofmask, pelvis, chains,
                         lengths, targets, q, root, w_rot, lam, max_iter, eps, iterations,
                         np.int64(0), B)

@@ -116,11 +116,11 @@ def solve_paper_range(parents, offsets, pre, post, lo, hi, dofmask, pelvis, chai
 @njit(cache=True, parallel=True)
 def solve_paper_batch(parents, offsets, pre, post, lo, hi, dofmask, pelvis,
                       chains, lengths, targets, q, root, lam, max_iter, eps, dmax,
-                      iterations):
+                      iterations, serial):
     # avatars are independent: spread over the cores (see PARALLEL_MIN_AVATARS); the
     # bounds are int64 in both calls so that they share one compiled version
     B = q.shape[0]
-    if B < PARALLEL_MIN_AVATARS:
+    if serial or B < PARALLEL_MIN_AVATARS:
         solve_paper_range(parents, offsets, pre, post, lo, hi, dofmask, pelvis, chains,
                           lengths, targets, q, root, lam, max_iter, eps, dmax, iterations,
                           np.int64(0), B)
