@@ -240,6 +240,7 @@ class TrackerPoses(NamedTuple):
 
 _TRACKER_FIELDS = frozenset(TrackerFrame.model_fields)
 _KNOWN_ROLES = frozenset(DEVICE_ROLES)
+_POSE_ROW_BYTES = 7 * 8  # position | quaternion, little-endian float64
 
 
 # bounded: the roles come from clients; a player sends the same ones every frame
@@ -265,7 +266,7 @@ def tracker_poses_from_wire(obj: dict[str, Any]) -> TrackerPoses | None:
     if (type(seq) is not int or not 0 <= seq <= MAX_INT or type(t_capture) is not float
             or type(clock_offset) is not float or not math.isfinite(t_capture)
             or not math.isfinite(clock_offset) or type(roles) is not list
-            or type(data) is not bytes or len(data) != 56 * len(roles)):
+            or type(data) is not bytes or len(data) != _POSE_ROW_BYTES * len(roles)):
         return None
     try:
         role_tuple = tuple(roles)
