@@ -5,7 +5,7 @@ TrackerFrame per slot of an absolute schedule (``Ticker``) until the source ends
 is up, ``stop`` is set or the task is cancelled; it then sends Leave. Error replies from
 the server are logged and counted, not fatal: the next frame may well be fine.
 
-The message builders (``device_poses``, ``calibrate_message``, ``tracker_frame``) are pure,
+The message builders (``calibrate_message``, ``tracker_frame``) are pure,
 so tests check them without a server. Frames go out through ``encode_tracker_frame``, the
 same bytes as ``encode(tracker_frame(...))`` without building the model, and are written
 at once (``Session.send_now``): the capture's way to the socket stays short.
@@ -20,9 +20,6 @@ from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import cast
-
-import numpy as np
-from numpy.typing import NDArray
 
 from client.connection import Session, SessionError, make_hello, open_session, stop_task
 from client.sources.base import DeviceSample, PoseSource, now
@@ -40,12 +37,6 @@ log = logging.getLogger(__name__)
 
 
 # --------------------------------------------------------------------------- messages
-def device_poses(sample: DeviceSample) -> NDArray[np.float64]:
-    """(D, 7) rows of position (metres) | quaternion x y z w, as the protocol wants: the
-    sample's own rows (the messages copy them)."""
-    return sample.poses
-
-
 def _roles(sample: DeviceSample) -> tuple[DeviceRole, ...]:
     # sources give plain strings; the message validates them against DeviceRole
     return cast(tuple[DeviceRole, ...], sample.roles)
@@ -53,13 +44,13 @@ def _roles(sample: DeviceSample) -> tuple[DeviceRole, ...]:
 
 def calibrate_message(sample: DeviceSample, clock_offset: float) -> Calibrate:
     """The Calibrate message of a T-pose sample (``clock_offset``: server - client, s)."""
-    return Calibrate(roles=_roles(sample), poses=device_poses(sample),
+    return Calibrate(roles=_roles(sample), poses=sample.poses,
                      t_capture=float(sample.t_capture), clock_offset=float(clock_offset))
 
 
 def tracker_frame(seq: int, sample: DeviceSample, clock_offset: float) -> TrackerFrame:
     """The TrackerFrame of one sample; ``t_capture`` stays on the client clock."""
-    return TrackerFrame(seq=seq, roles=_roles(sample), poses=device_poses(sample),
+    return TrackerFrame(seq=seq, roles=_roles(sample), poses=sample.poses,
                         t_capture=float(sample.t_capture), clock_offset=float(clock_offset))
 
 
@@ -276,7 +267,7 @@ class Player:
         if sample is None:
             return None
         if session.send_now(encode_tracker_frame(
-                self._seq, sample.roles, device_poses(sample), sample.t_capture,
+                self._seq, sample.roles, sample.poses, sample.t_capture,
                 session.clock.offset)):
             self._seq += 1
             self.stats.frames_sent += 1

@@ -115,21 +115,21 @@ def test_bvh_devices_are_the_joints_of_the_file(walker: BvhSource) -> None:
     names = {"hip": "Hips", "left_hand": "LeftHand", "right_foot": "RightFoot",
              "left_knee": "LeftLeg"}
     up = np.array([0.0, 0.0, 0.0])
-    up[1] = lift = walker.positions[0, ROLES.index("hip"), 1] - gp[0, sk.index("Hips"), 1]
+    up[1] = lift = walker.poses[0, ROLES.index("hip"), 1] - gp[0, sk.index("Hips"), 1]
     # the floor: the lowest joint of frame 0 ends up on y = 0
     assert abs(gp[0, :, 1].min() + lift) < 1e-9
     assert lift < -0.005  # this file's lowest joint is 12 mm above its y = 0
     for f in (0, 100, 342):
         for role, joint in names.items():
             d, j = ROLES.index(role), sk.index(joint)
-            np.testing.assert_allclose(walker.positions[f, d], gp[f, j] + up,
+            np.testing.assert_allclose(walker.poses[f, d, :3], gp[f, j] + up,
                                        atol=1e-9)
-            assert R.angle_between(walker.rotations[f, d], gq[f, j]) < 1e-6
+            assert R.angle_between(walker.poses[f, d, 3:], gq[f, j]) < 1e-6
     # forearm halfway from elbow to wrist; the headset at the eyes, in front of the head
     d = ROLES.index("right_forearm")
     mid = (gp[:, sk.index("RightForeArm")] + gp[:, sk.index("RightHand")]) / 2
-    np.testing.assert_allclose(walker.positions[:, d], mid + up, atol=1e-9)
-    hmd = walker.positions[:, ROLES.index("head")] - gp[:, sk.index("Head")] - up
+    np.testing.assert_allclose(walker.poses[:, d, :3], mid + up, atol=1e-9)
+    hmd = walker.poses[:, ROLES.index("head"), :3] - gp[:, sk.index("Head")] - up
     np.testing.assert_allclose(np.linalg.norm(hmd, axis=-1), np.hypot(0.06, 0.09),
                                atol=1e-9)
 
@@ -138,14 +138,14 @@ def test_bvh_read_order_and_loop(walker: BvhSource) -> None:
     src = BvhSource(builtin_motion_path(), loop=True)
     first = src.read()
     assert first is not None and first.roles == ROLES
-    np.testing.assert_array_equal(first.positions, walker.positions[0])
+    np.testing.assert_array_equal(first.poses, walker.poses[0])
     for _ in range(src.num_frames - 1):
         last = src.read()
     assert last is not None
-    np.testing.assert_array_equal(last.positions, walker.positions[-1])
+    np.testing.assert_array_equal(last.poses, walker.poses[-1])
     again = src.read()
     assert again is not None
-    np.testing.assert_array_equal(again.positions, walker.positions[0])
+    np.testing.assert_array_equal(again.poses, walker.poses[0])
     once = BvhSource(builtin_motion_path())
     once.next_frame = once.num_frames
     assert once.read() is None
@@ -155,7 +155,7 @@ def test_bvh_tpose_stands_where_the_clip_starts(walker: BvhSource) -> None:
     cal = walker.calibration()
     assert cal.roles == ROLES
     p = dict(zip(cal.roles, cal.positions, strict=True))
-    first = dict(zip(ROLES, walker.positions[0], strict=True))
+    first = dict(zip(ROLES, walker.poses[0, :, :3], strict=True))
     span = p["left_hand"] - p["right_hand"]
     assert abs(span[1]) < 0.02  # arms out sideways, hands level
     assert 1.2 < np.linalg.norm(span) < 1.8
@@ -241,7 +241,7 @@ def test_bvh_real_files(shared_data: SharedData, name: str, frames: int, fps: fl
     cal = src.calibration()
     feet = [ROLES.index("left_foot"), ROLES.index("right_foot")]
     assert 0.0 <= cal.positions[feet, 1].min() < 0.15
-    assert 0.0 <= src.positions[0, feet, 1].min() < 0.15
+    assert 0.0 <= src.poses[0, feet, 1].min() < 0.15
     head = cal.positions[ROLES.index("head"), 1]
     assert 1.3 < head < 1.9  # an adult's eyes
 

@@ -69,16 +69,14 @@ class BvhSource:
         self.hmd_offset = R.rotate(R.conjugate(canon_q[head]), EYE_FROM_HEAD_JOINT)
         gq, gp = forward_kinematics(self.skeleton, rot, trans[:, 0], trans)
         gp[..., 1] -= gp[0, self._body, 1].min()  # the first frame stands on y = 0
-        self.positions, self.rotations = self._devices(gq, gp)
+        positions, rotations = self._devices(gq, gp)
         tq, tp = self._place_tpose(canon_q, canon_p, gp[0])
         self.tpose_positions, self.tpose_rotations = (a[0] for a in self._devices(tq, tp))
         # several players replaying one clip stand apart and move out of step
         shift = np.array([offset[0], 0.0, offset[1]])
-        self.positions += shift
         self.tpose_positions = self.tpose_positions + shift
         # every frame's rows as a player sends them (position | quaternion)
-        self.poses = np.concatenate([self.positions, self.rotations], axis=2)
-        self.positions, self.rotations = self.poses[..., :3], self.poses[..., 3:]
+        self.poses = np.concatenate([positions + shift, rotations], axis=2)
         # a headset samples at its own rate (90 Hz for a Vive), not the capture's: replay
         # at rate_hz by stepping through the clip by time, nearest frame
         self.rate_hz = float(rate_hz or motion.fps)
@@ -116,7 +114,7 @@ class BvhSource:
     @property
     def num_frames(self) -> int:
         """Motion frames (a file's bind-pose frame excluded)."""
-        return int(self.positions.shape[0])
+        return int(self.poses.shape[0])
 
     def calibration(self) -> DeviceSample:
         return DeviceSample.of(now(), ROLES, self.tpose_positions, self.tpose_rotations)

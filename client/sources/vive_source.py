@@ -34,14 +34,13 @@ class ViveFileSource:
         # every frame's rows as a player sends them (position | quaternion)
         self.poses = np.concatenate([rec.positions[:, order], rec.rotations[:, order]],
                                     axis=2)
-        self.positions, self.rotations = self.poses[..., :3], self.poses[..., 3:]
         self.rate_hz = float(rate_hz)
         self.loop = loop
         self.next_frame = 1
 
     @property
     def num_frames(self) -> int:
-        return int(self.positions.shape[0])
+        return int(self.poses.shape[0])
 
     def _sample(self, f: int) -> DeviceSample:
         return DeviceSample(now(), self.roles, self.poses[f].copy())

@@ -58,7 +58,7 @@ def solve_builtin_clip(mesh: SkinnedMesh | None = None, solver: str = "analytic"
     cal = calibrate(rig, dict(zip(tpose.roles, tpose.positions, strict=True)),
                     dict(zip(tpose.roles, tpose.rotations, strict=True)))
     roles = tpose.roles
-    targets = cal.targets(source.positions, source.rotations, roles)
+    targets = cal.targets(source.poses[..., :3], source.poses[..., 3:], roles)
     ik = Solver(rig, solver)
     state = PoseBatch(cal.pose[None].copy(), cal.root[None].copy())
     F = targets.shape[0]
