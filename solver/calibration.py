@@ -279,9 +279,8 @@ def calibrate(rig: Rig, positions: dict[str, NDArray[np.float64]],
         # hip joints and knees (HIP_PIVOT_RAISE, KNEE_PIVOT_RAISE): raise both, the
         # T-pose ankles staying where they were
         gq, gp = global_pose(sk.with_offsets(offsets), pose, root)
-        legs = [tuple(rig.role(f"{bone}_{side}") for bone in ("thigh", "shin", "foot"))
-                for side in "lr"]
-        raise_leg_pivots(sk.parents, legs, offsets, gq, R.rotate(yaw, [0.0, s, 0.0]))
+        raise_leg_pivots(sk.parents, leg_joints(rig), offsets, gq,
+                         R.rotate(yaw, [0.0, s, 0.0]))
     gq, gp = global_pose(sk.with_offsets(offsets), pose, root)
     mounts = {}
     for name, p in positions.items():
@@ -304,7 +303,13 @@ def calibrate(rig: Rig, positions: dict[str, NDArray[np.float64]],
     return Calibration(rig, offsets, pose, root, mounts, float(s))
 
 
-def raise_leg_pivots(parents: NDArray[np.integer], legs: list[tuple[int, ...]],
+def leg_joints(rig: Rig) -> list[tuple[int, int, int]]:
+    """Each leg's (thigh, shin, foot) joints, left then right: ``raise_leg_pivots``'s legs."""
+    return [(rig.role(f"thigh_{side}"), rig.role(f"shin_{side}"), rig.role(f"foot_{side}"))
+            for side in "lr"]
+
+
+def raise_leg_pivots(parents: NDArray[np.integer], legs: list[tuple[int, int, int]],
                      offsets: NDArray[np.float64], gq: NDArray[np.float64],
                      up: ArrayLike) -> None:
     """Move each leg's (thigh, shin, foot) hip joint HIP_PIVOT_RAISE and knee

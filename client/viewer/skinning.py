@@ -44,7 +44,7 @@ from numpy.typing import NDArray
 
 from protocol import AvatarInfo
 from solver import rotations as R
-from solver.calibration import EYE_FROM_HEAD_JOINT, raise_leg_pivots
+from solver.calibration import EYE_FROM_HEAD_JOINT, leg_joints, raise_leg_pivots
 from solver.fk import forward_kinematics
 from solver.readers.gltf import SkinnedMesh
 from solver.rig import build_rig, global_pose
@@ -88,11 +88,9 @@ def bind_offsets(skeleton: Skeleton) -> Array:
 def _bind(skeleton: Skeleton) -> tuple[Skeleton, Array]:
     """The bind skeleton (see ``bind_offsets``) and FittedAvatar.bind_shift for it."""
     rig = build_rig(skeleton)
-    legs = [tuple(rig.role(f"{bone}_{side}") for bone in ("thigh", "shin", "foot"))
-            for side in "lr"]
     gq, _ = global_pose(skeleton, rig.canonical)  # calibration's T-pose, facing +z
     offsets = skeleton.offsets.copy()
-    raise_leg_pivots(skeleton.parents, legs, offsets, gq, [0.0, 1.0, 0.0])
+    raise_leg_pivots(skeleton.parents, leg_joints(rig), offsets, gq, [0.0, 1.0, 0.0])
     bind = skeleton.with_offsets(offsets)
     shift = skeleton.rest_positions() - bind.rest_positions()
     offsets.flags.writeable = shift.flags.writeable = False  # shared by every avatar
