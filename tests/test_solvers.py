@@ -8,7 +8,7 @@ import pytest
 from solver import rotations as R
 from solver.fk import forward_kinematics
 from solver.ik import SOLVERS, PoseBatch, Solver, SolverOptions
-from solver.kernels import compose_joint
+from solver.kernels import composed
 from solver.readers.gltf import load_makehuman
 from solver.rig import Rig, build_rig, global_pose, within_limits
 
@@ -22,12 +22,10 @@ def random_poses(rig: Rig, n: int, frac: float, seed: int) -> np.ndarray:
     """Poses with every joint at a random deviation inside `frac` of its limits."""
     rng = np.random.default_rng(seed)
     q = PoseBatch.canonical(rig, n).rotations.copy()
-    t1, t2, out = np.empty(4), np.empty(4), np.empty(4)
     for b in range(n):
         for j in np.nonzero(rig.movable)[0]:
             d = rng.uniform(rig.lo[j] * frac, rig.hi[j] * frac)
-            compose_joint(rig.pre[j], rig.post[j], d[0], d[1], d[2], out, t1, t2)
-            q[b, j] = out
+            q[b, j] = composed(tuple(rig.pre[j]), tuple(rig.post[j]), d[0], d[1], d[2])
     return q
 
 
@@ -167,11 +165,10 @@ def test_a_bent_arms_elbow_is_turned_part_of_the_way_down(rig: Rig) -> None:
     from solver.ik.analytic import ELBOW_DOWN_SHARE
 
     q = PoseBatch.canonical(rig, 1).rotations.copy()
-    t1, t2 = np.empty(4), np.empty(4)
     upper, elbow, hand = (rig.role(f"{b}_l") for b in ("upperarm", "forearm", "hand"))
     # arm forward and out, elbow bent 90 deg: the elbow well off the circle's bottom
-    compose_joint(rig.pre[upper], rig.post[upper], 0.9, 0.0, 0.6, q[0, upper], t1, t2)
-    compose_joint(rig.pre[elbow], rig.post[elbow], 1.57, 0.0, 0.0, q[0, elbow], t1, t2)
+    q[0, upper] = composed(tuple(rig.pre[upper]), tuple(rig.post[upper]), 0.9, 0.0, 0.6)
+    q[0, elbow] = composed(tuple(rig.pre[elbow]), tuple(rig.post[elbow]), 1.57, 0.0, 0.0)
     targets = targets_of(rig, q, np.zeros((1, 3)))
     _, gp = forward_kinematics(rig.skeleton, q, np.zeros((1, 3)))
     state = PoseBatch.canonical(rig, 1)

@@ -33,29 +33,26 @@ from numba import njit, prange
 from solver.kernels import (
     PARALLEL_MIN_AVATARS,
     Quat,
-    clamp_joint,
-    compose_joint,
+    clamp_joint_at,
+    composed,
     dls_chain,
     dls_scratch,
     dls_tree,
     dls_tree_scratch,
+    fk_joint,
     fk_joints,
     place_root,
-    qaxis_angle,
-    qbetween,
-    qmul,
-    qmul_conj_left,
-    qmul_conj_right,
-    qnormalize,
-    qrotate,
-    qrotate_inv,
+    row3,
     row4,
     set_effector_rotation,
+    set_row4,
+    taxis_angle,
+    tbetween,
     tconj,
     tmul,
+    tnormalize,
     tree_error,
     trotate,
-    vec4,
 )
 
 # share of the arm's turn away from the T-pose that the clavicle takes. Measured on the mocap
@@ -80,28 +77,19 @@ ELBOW_DOWN_SHARE = 0.1
 
 
 @njit(cache=True)
-def _rotate_global(parents, q, gq, j, rot, t4a, t4b):
-    """Turn joint j by a world-frame rotation: G_j <- rot * G_j (local updated)."""
-    qmul(rot, gq[j], t4a)
-    qmul_conj_left(gq[parents[j]], t4a, t4b)
-    for i in range(4):
-        q[j, i] = t4b[i]
-    qnormalize(q[j])
-
-
-@njit(cache=True)
-def _turn_by_share(parents, q, gq, pre, post, lo, hi, j, rot, share, t4a, t4b):
-    """Turn joint j by `share` of the world rotation `rot` (changed in place), within
-    its limits."""
+def _turn_by_share(parents, q, gq, pre, post, lo, hi, j, rot, share):
+    """Turn joint j by `share` of the world rotation `rot`, within its limits:
+    G_j <- rot' * G_j (its local rotation updated; G_j itself is not)."""
     if rot[3] < 0.0:
-        rot[:] = -rot
+        rot = (-rot[0], -rot[1], -rot[2], -rot[3])
     sa = math.sqrt(rot[0] ** 2 + rot[1] ** 2 + rot[2] ** 2)
     if sa < 1e-12:
         return
     angle = 2.0 * math.atan2(sa, rot[3]) * share
-    qaxis_angle(rot[0] / sa, rot[1] / sa, rot[2] / sa, angle, rot)
-    _rotate_global(parents, q, gq, j, rot, t4a, t4b)
-    clamp_joint(q[j], pre[j], post[j], lo[j], hi[j], t4a, t4b)
+    turn = taxis_angle(rot[0] / sa, rot[1] / sa, rot[2] / sa, angle)
+    g = tmul(turn, row4(gq, j))
+    set_row4(q, j, tnormalize(tmul(tconj(row4(gq, parents[j])), g)))
+    clamp_joint_at(q, j, pre, post, lo, hi)
 
 
 @njit(cache=True)
@@ -114,26 +102,18 @@ def solve_spine(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, chain, n,
                 target):
     head = chain[n - 1]
     nb = n - 1  # bending joints (spine, chest, neck)
-    t4a = np.empty(4)
-    t4b = np.empty(4)
-    rot = np.empty(4)
-    tq = np.empty(4)
-    for i in range(4):
-        tq[i] = target[3 + i]
+    tq = (target[3], target[4], target[5], target[6])
     # relative rotation pelvis -> head, minus the canonical one, spread over the spine
-    crel = np.empty(4)
-    crel[:] = canon[chain[0]]
+    crel = row4(canon, chain[0])
     for i in range(1, n):
-        qmul(crel, canon[chain[i]], t4a)
-        crel[:] = t4a
+        crel = tmul(crel, row4(canon, chain[i]))
     base = parents[chain[0]]
-    qmul_conj_left(gq[base], tq, t4a)  # rel
-    qmul_conj_left(crel, t4a, t4b)  # deviation, in the head's canonical frame
-    rv = np.empty(3)
-    if t4b[3] < 0.0:
-        t4b[:] = -t4b
-    s = math.sqrt(t4b[0] ** 2 + t4b[1] ** 2 + t4b[2] ** 2)
-    ang = 2.0 * math.atan2(s, t4b[3])
+    rel = tmul(tconj(row4(gq, base)), tq)
+    dev = tmul(tconj(crel), rel)  # deviation, in the head's canonical frame
+    if dev[3] < 0.0:
+        dev = (-dev[0], -dev[1], -dev[2], -dev[3])
+    s = math.sqrt(dev[0] ** 2 + dev[1] ** 2 + dev[2] ** 2)
+    ang = 2.0 * math.atan2(s, dev[3])
     k = 0.0 if s < 1e-12 else ang / s
     # each joint (the head too) takes a share proportional to its range of motion: the
     # neck turns and bends far more than a lumbar segment (limits.py)
@@ -143,27 +123,24 @@ def solve_spine(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, chain, n,
     for i in range(nb):
         j = chain[i]
         share = _range_of_motion(lo, hi, j) / total
-        for d in range(3):
-            rv[d] = t4b[d] * k * share
-        qaxis_angle(0.0, 0.0, 1.0, 0.0, rot)
-        a = math.sqrt(rv[0] ** 2 + rv[1] ** 2 + rv[2] ** 2)
+        rx = dev[0] * k * share
+        ry = dev[1] * k * share
+        rz = dev[2] * k * share
+        rot = taxis_angle(0.0, 0.0, 1.0, 0.0)
+        a = math.sqrt(rx ** 2 + ry ** 2 + rz ** 2)
         if a > 1e-12:
-            qaxis_angle(rv[0] / a, rv[1] / a, rv[2] / a, a, rot)
-        qmul(canon[j], rot, q[j])
-        clamp_joint(q[j], pre[j], post[j], lo[j], hi[j], t4a, t4b)
+            rot = taxis_angle(rx / a, ry / a, rz / a, a)
+        set_row4(q, j, tmul(row4(canon, j), rot))
+        clamp_joint_at(q, j, pre, post, lo, hi)
     fk_joints(parents, offsets, q, gq, gp, chain, n)
     # bend so that the head sits on its target: each joint takes its share of the swing
-    r1 = np.empty(3)
-    r2 = np.empty(3)
     for _sweep in range(2):
         for i in range(nb):
             j = chain[i]
-            for d in range(3):
-                r1[d] = gp[head, d] - gp[j, d]
-                r2[d] = target[d] - gp[j, d]
-            qbetween(r1, r2, rot)
-            _turn_by_share(parents, q, gq, pre, post, lo, hi, j, rot, 1.0 / (nb - i),
-                           t4a, t4b)
+            r1 = (gp[head, 0] - gp[j, 0], gp[head, 1] - gp[j, 1], gp[head, 2] - gp[j, 2])
+            r2 = (target[0] - gp[j, 0], target[1] - gp[j, 1], target[2] - gp[j, 2])
+            _turn_by_share(parents, q, gq, pre, post, lo, hi, j, tbetween(r1, r2),
+                           1.0 / (nb - i))
             fk_joints(parents, offsets, q, gq, gp, chain[i:], n - i)
     set_effector_rotation(parents, q, gq, pre, post, lo, hi, head, target)
 
@@ -172,12 +149,9 @@ def solve_spine(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, chain, n,
 def _hinge_angle(offsets, pre, post, lo, hi, mid, end, dist, current):
     """Hinge angle (about the mid joint's limit x axis) that makes the distance from the
     upper joint to the end joint equal `dist`, nearest the allowed range and `current`."""
-    o1 = offsets[mid]
-    o2 = offsets[end]
-    u = np.empty(3)
-    v = np.empty(3)
-    qrotate_inv(pre[mid], o1, u)
-    qrotate(post[mid], o2, v)
+    o1 = row3(offsets, mid)
+    u = trotate(tconj(row4(pre, mid)), o1)
+    v = trotate(row4(post, mid), row3(offsets, end))
     A = u[1] * v[1] + u[2] * v[2]
     Bc = u[2] * v[1] - u[1] * v[2]
     l1s = o1[0] ** 2 + o1[1] ** 2 + o1[2] ** 2
@@ -227,26 +201,18 @@ def _swivel(Gu, offsets, pre, post, canon, mid, end, tq, dvec, nx, ny, nz,
     solutions, was worse on all but one clip (kicking, by 0.3 mm): real wrists deviate,
     and that error moved the elbow by up to 200 mm (CMU 131); Vive mean 23.1 -> 20.6 mm,
     held-out 55.4 -> 49.5 mm, BVH MPJPE 12.0 -> 10.5 mm, MPJRE 10.2 -> 9.8 deg.)"""
-    t4 = np.empty(4)
     if not arm:
-        a = np.empty(3)
-        x_end = np.empty(3)
-        ex = np.zeros(3)
-        ex[0] = 1.0
-        qmul_conj_right(tq, post[end], t4)
-        qrotate(t4, ex, x_end)  # the end bone's flexion axis, world
-        qmul(Gu, pre[mid], t4)
-        qrotate(t4, ex, a)  # the knee's hinge axis, world
+        ex = (1.0, 0.0, 0.0)
+        x_end = trotate(tmul(tq, tconj(row4(post, end))), ex)  # the foot's flexion axis
+        a = trotate(tmul(Gu, row4(pre, mid)), ex)  # the knee's hinge axis, world
         return _perp_angle(a[0], a[1], a[2], x_end[0], x_end[1], x_end[2], nx, ny, nz)
-    E = np.empty(3)
-    qrotate(Gu, offsets[mid], E)  # elbow, relative to the shoulder
+    E = trotate(Gu, row3(offsets, mid))  # elbow, relative to the shoulder
     e2 = E[0] ** 2 + E[1] ** 2 + E[2] ** 2
     de = E[0] * nx + E[1] * ny + E[2] * nz
     if e2 - de * de < 0.05 ** 2 * e2:
         return 0.0  # (nearly) straight arm: the swivel means little, keep the current one
-    qmul_conj_right(tq, canon[end], t4)
-    g = np.empty(3)
-    qrotate(t4, offsets[end], g)  # forearm as a neutral wrist would have it
+    # forearm as a neutral wrist would have it
+    g = trotate(tmul(tq, tconj(row4(canon, end))), row3(offsets, end))
     # the swivel of the neutral-wrist elbow W - g about the line (every point of the
     # circle is as near when that elbow lies on the line: the angle then comes out 0)
     return _perp_angle(E[0], E[1], E[2], dvec[0] - g[0], dvec[1] - g[1], dvec[2] - g[2],
@@ -259,22 +225,18 @@ def _below(Gu, offsets, mid, psi, nx, ny, nz):
     circle to the elbow turned by psi (0 when n is nearly vertical: no lowest point)."""
     if abs(ny) > 0.95:
         return 0.0
-    E = np.empty(3)
-    qrotate(Gu, offsets[mid], E)
-    rot = np.empty(4)
-    qaxis_angle(nx, ny, nz, psi, rot)
-    Er = np.empty(3)
-    qrotate(rot, E, Er)
+    E = trotate(Gu, row3(offsets, mid))
+    Er = trotate(taxis_angle(nx, ny, nz, psi), E)
     return _perp_angle(0.0, -1.0, 0.0, Er[0], Er[1], Er[2], nx, ny, nz)
 
 
 @njit(cache=True)
-def _forearm_twist(Gm: Quat, pre, post, mid, end, tq) -> float:
+def _forearm_twist(Gm: Quat, pre, post, mid, end, tq: Quat) -> float:
     """Twist of the forearm (about its limit y axis) that leaves the wrist no twist, for
     a forearm whose global rotation Gm has none: X = (Gm post^-1)^-1 T post_end^-1 =
     Ry(tau) K D_end, tau the twist (about y) of X less that of K."""
     lim = tmul(Gm, tconj(row4(post, mid)))
-    X = tmul(tmul(tconj(lim), vec4(tq)), tconj(row4(post, end)))
+    X = tmul(tmul(tconj(lim), tq), tconj(row4(post, end)))
     # twist-first split X = Ry(t) * S gives t = 2 atan2(X_y, X_w); K = post_mid *
     # pre_end is a pure turn about the shared y axis (the hand's limit frame runs
     # along the forearm), so tau = t - twist(K)
@@ -288,39 +250,24 @@ def solve_limb(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, upper, mid
                target, twist_in_mid):
     """Two-bone limb: upper (upper arm / thigh), mid (forearm / shin, hinge about its limit
     x axis, with a twist about the bone when twist_in_mid), end (hand / foot)."""
-    t4a = np.empty(4)
-    t4b = np.empty(4)
-    rot = np.empty(4)
-    tq = np.empty(4)
-    for i in range(4):
-        tq[i] = target[3 + i]
-    S = gp[upper]
-    dvec = np.empty(3)
-    for d in range(3):
-        dvec[d] = target[d] - S[d]
+    tq = (target[3], target[4], target[5], target[6])
+    dvec = (target[0] - gp[upper, 0], target[1] - gp[upper, 1], target[2] - gp[upper, 2])
     dist = math.sqrt(dvec[0] ** 2 + dvec[1] ** 2 + dvec[2] ** 2)
     if dist < 1e-9:
         return
     # current hinge angle, for choosing between the two solutions
-    qmul_conj_left(pre[mid], q[mid], t4a)
-    qmul_conj_right(t4a, post[mid], t4b)
-    cur = 2.0 * math.atan2(t4b[0], t4b[3])
+    d = tmul(tmul(tconj(row4(pre, mid)), row4(q, mid)), tconj(row4(post, mid)))
+    cur = 2.0 * math.atan2(d[0], d[3])
     # the forearm's twist of the last frame (D = swing * Ry(twist)); none for a leg
-    tau_prev = 2.0 * math.atan2(t4b[1], t4b[3]) if twist_in_mid else 0.0
+    tau_prev = 2.0 * math.atan2(d[1], d[3]) if twist_in_mid else 0.0
     tau_prev = math.atan2(math.sin(tau_prev), math.cos(tau_prev))
     theta = _hinge_angle(offsets, pre, post, lo, hi, mid, end, dist, cur)
-    compose_joint(pre[mid], post[mid], theta, 0.0, 0.0, q[mid], t4a, t4b)
+    set_row4(q, mid, composed(row4(pre, mid), row4(post, mid), theta, 0.0, 0.0))
     # aim the limb: end joint in upper-local coordinates, then shortest arc to target
-    w = np.empty(3)
-    tmp = np.empty(3)
-    qrotate(q[mid], offsets[end], tmp)
-    for d in range(3):
-        w[d] = offsets[mid, d] + tmp[d]
-    cur_dir = np.empty(3)
-    qrotate(gq[upper], w, cur_dir)
-    qbetween(cur_dir, dvec, rot)
-    Gu = np.empty(4)
-    qmul(rot, gq[upper], Gu)
+    t = trotate(row4(q, mid), row3(offsets, end))
+    w = (offsets[mid, 0] + t[0], offsets[mid, 1] + t[1], offsets[mid, 2] + t[2])
+    cur_dir = trotate(row4(gq, upper), w)
+    Gu = tmul(tbetween(cur_dir, dvec), row4(gq, upper))
     # swivel about the upper-end line
     nx, ny, nz = dvec[0] / dist, dvec[1] / dist, dvec[2] / dist
     psi = _swivel(Gu, offsets, pre, post, canon, mid, end, tq, dvec, nx, ny, nz,
@@ -332,7 +279,7 @@ def solve_limb(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, upper, mid
         # the elbow's bend dictates as it grows
         wb = min(max((theta - BEND_LO) / (BEND_HI - BEND_LO), 0.0), 1.0)
         if wb < 1.0:
-            Gm = tmul(vec4(Gu), vec4(q[mid]))  # forearm, hinge only (no twist), psi = 0
+            Gm = tmul(Gu, row4(q, mid))  # forearm, hinge only (no twist), psi = 0
             tau0 = _forearm_twist(Gm, pre, post, mid, end, tq)
             # which way the forearm's twist axis runs along the shoulder-wrist line
             yw = trotate(tmul(Gm, tconj(row4(post, mid))), (0.0, 1.0, 0.0))
@@ -344,23 +291,18 @@ def solve_limb(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, upper, mid
         # people keep their elbows low: turn a bent arm's elbow part of the way down
         if wb > 0.0:
             psi -= ELBOW_DOWN_SHARE * wb * _below(Gu, offsets, mid, psi, nx, ny, nz)
-    qaxis_angle(nx, ny, nz, psi, rot)
-    qmul(rot, Gu, t4a)
-    Gu[:] = t4a
-    qmul_conj_left(gq[parents[upper]], Gu, q[upper])
-    qnormalize(q[upper])
-    clamp_joint(q[upper], pre[upper], post[upper], lo[upper], hi[upper], t4a, t4b)
-    chain3 = np.empty(3, dtype=np.int64)
-    chain3[0] = upper
-    chain3[1] = mid
-    chain3[2] = end
-    fk_joints(parents, offsets, q, gq, gp, chain3, 2)
+    Gu = tmul(taxis_angle(nx, ny, nz, psi), Gu)
+    set_row4(q, upper, tnormalize(tmul(tconj(row4(gq, parents[upper])), Gu)))
+    clamp_joint_at(q, upper, pre, post, lo, hi)
+    fk_joint(parents, offsets, q, gq, gp, upper)
+    fk_joint(parents, offsets, q, gq, gp, mid)
     if twist_in_mid:
         tau = _forearm_twist(row4(gq, mid), pre, post, mid, end, tq)
-        compose_joint(pre[mid], post[mid], theta, tau, 0.0, q[mid], t4a, t4b)
-        clamp_joint(q[mid], pre[mid], post[mid], lo[mid], hi[mid], t4a, t4b)
-        fk_joints(parents, offsets, q, gq, gp, chain3[1:], 1)
-    fk_joints(parents, offsets, q, gq, gp, chain3[1:], 2)
+        set_row4(q, mid, composed(row4(pre, mid), row4(post, mid), theta, tau, 0.0))
+        clamp_joint_at(q, mid, pre, post, lo, hi)
+        fk_joint(parents, offsets, q, gq, gp, mid)
+    fk_joint(parents, offsets, q, gq, gp, mid)
+    fk_joint(parents, offsets, q, gq, gp, end)
     set_effector_rotation(parents, q, gq, pre, post, lo, hi, end, target)
 
 
@@ -369,31 +311,19 @@ def aim_clavicle(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, clav, up
                  end, target, share):
     """Turn the clavicle a share of the way from where the straight canonical arm points
     to where the hand target is, seen from the shoulder."""
-    t4a = np.empty(4)
-    t4b = np.empty(4)
-    rot = np.empty(4)
-    q[clav, :] = canon[clav]
-    chain1 = np.empty(2, dtype=np.int64)
-    chain1[0] = clav
-    chain1[1] = upper
-    fk_joints(parents, offsets, q, gq, gp, chain1, 2)
+    set_row4(q, clav, row4(canon, clav))
+    fk_joint(parents, offsets, q, gq, gp, clav)
+    fk_joint(parents, offsets, q, gq, gp, upper)
     if share == 0.0:  # the default: the clavicle stays neutral
         return
     # canonical arm direction in the clavicle's frame: c_u (o_mid + c_m o_end)
-    v = np.empty(3)
-    w = np.empty(3)
-    qrotate(canon[mid], offsets[end], v)
-    for d in range(3):
-        v[d] += offsets[mid, d]
-    qrotate(canon[upper], v, w)
-    a0 = np.empty(3)
-    qrotate(gq[clav], w, a0)
-    t = np.empty(3)
-    for d in range(3):
-        t[d] = target[d] - gp[upper, d]
-    qbetween(a0, t, rot)
-    _turn_by_share(parents, q, gq, pre, post, lo, hi, clav, rot, share, t4a, t4b)
-    fk_joints(parents, offsets, q, gq, gp, chain1, 2)
+    v = trotate(row4(canon, mid), row3(offsets, end))
+    v = (v[0] + offsets[mid, 0], v[1] + offsets[mid, 1], v[2] + offsets[mid, 2])
+    a0 = trotate(row4(gq, clav), trotate(row4(canon, upper), v))
+    t = (target[0] - gp[upper, 0], target[1] - gp[upper, 1], target[2] - gp[upper, 2])
+    _turn_by_share(parents, q, gq, pre, post, lo, hi, clav, tbetween(a0, t), share)
+    fk_joint(parents, offsets, q, gq, gp, clav)
+    fk_joint(parents, offsets, q, gq, gp, upper)
 
 
 @njit(cache=True)
