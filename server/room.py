@@ -192,12 +192,22 @@ class Room:
                              and a.cadence.due_within(anchor - w, anchor + w)}
             asyncio.get_running_loop().call_soon(self._solve_when_burst_ends)
 
+    def _everyone_in(self) -> bool:
+        """Every connected, calibrated player has a frame in the open burst: no one is
+        left to join it."""
+        pending = self._pending
+        return all(a.avatar_id in pending for a in self.avatars.values()
+                   if a.connected and self.is_calibrated(a.avatar_id))
+
     def _solve_when_burst_ends(self) -> None:
         # a frame still arriving: submitted in this pass, read from its socket and
         # waiting for its handler's turn (the handlers run a pass after the reads), or
-        # due from a player in step with the burst
-        arriving = self._arrived or bool(self._awaited) or any(
-            a.connection is not None and a.connection.arrivals for a in self.avatars.values())
+        # due from a player in step with the burst; unless every player's is in already
+        # (that saves the pass that would find nothing more)
+        arriving = bool(self._awaited) or (
+            not self._everyone_in() if self._arrived else any(
+                a.connection is not None and a.connection.arrivals
+                for a in self.avatars.values()))
         if arriving and now() - self._burst_start < self.coalesce_max_s:
             self._arrived = False
             asyncio.get_running_loop().call_soon(self._solve_when_burst_ends)

@@ -135,6 +135,27 @@ def test_a_tick_early_for_everyone_still_makes_one_burst(session: Session,
     assert awaited == {2}
 
 
+def test_a_burst_with_every_players_frame_in_is_solved_on_the_next_pass(
+        session: Session, recording: ViveRecording) -> None:
+    """Both players' frames came in during one pass of the loop: nobody is left to wait
+    for, so the burst is solved on the next pass (a frame arriving in the pass would
+    otherwise keep it open one pass more), well within its window."""
+    async def main() -> tuple[int, int, int]:
+        room = _room(session, recording, window=0.05)
+        room.submit(1, _frame(recording, 5), 1.0)
+        room.submit(2, _frame(recording, 6), 1.0)
+        await asyncio.sleep(0)  # one pass: the burst's check runs once
+        solved_then = room.metrics.batches
+        room.submit(1, _frame(recording, 7), 2.0)  # player 2 has not sent this time
+        await asyncio.sleep(0)
+        return solved_then, room.metrics.batches, room.metrics.frames_solved
+
+    solved_then, batches, frames = asyncio.run(main())
+    assert solved_then == 1
+    # player 1 alone, a frame just in: the burst stays open for a pass, then closes
+    assert (batches, frames) == (1, 2)
+
+
 def test_warm_path_runs_a_frame_in_three_short_phases(session: Session,
                                                       recording: ViveRecording) -> None:
     """The twin's path runs a third at a time (decode + stage, solve, encode), so a
