@@ -231,7 +231,10 @@ class Room:
         # read nothing it rarely ran (in 23% of the bursts; the server reads a frame about
         # every pass) and moved p99 server both ways (1.19 / 0.95 / 0.93 / 1.21 against
         # 1.07 / 1.13 / 0.97 / 1.01 ms); on every pass it put the reads behind the players
-        # (p50 capture-to-server 0.29 against ~0.1 ms) and p99 server went to 1.38 ms
+        # (p50 capture-to-server 0.29 against ~0.1 ms) and p99 server went to 1.38 ms.
+        # Again with the cheaper frame path: in place a one-avatar solve takes ~62 us (20
+        # hot) and reading a frame ~22 us of the ~33 between frames, so the reads still
+        # fell behind (p99 server 1.45-1.62 against 1.29-1.37 ms, two pairs)
         if self._scheduled and self.bursts is not None:
             self.bursts.closed()
         self._scheduled = False
