@@ -52,6 +52,10 @@ def _parser() -> argparse.ArgumentParser:
     sv.add_argument("--busy-poll", action="store_true",
                     help="never sleep: poll, and keep the frame path warm between bursts "
                          "(lower latency; takes a whole core, give it one)")
+    sv.add_argument("--no-helper", dest="helper", action="store_false",
+                    help="with --busy-poll on some cores only (taskset), a helper thread "
+                         "spins on the others and takes part of each batch; this turns "
+                         "it off")
 
     pl = sub.add_parser("play", help="join a session as a tracked player")
     pl.add_argument("--server", required=True, help="ws://host:port")
@@ -101,6 +105,9 @@ def _parser() -> argparse.ArgumentParser:
     dm.add_argument("--no-busy-poll", dest="busy_poll", action="store_false",
                     help="the server sleeps between bursts (by default it busy-polls "
                          "when it has a core of its own)")
+    dm.add_argument("--no-helper", dest="helper", action="store_false",
+                    help="the server solves alone (by default, busy polling, a helper "
+                         "thread spins on the clients' core and takes part of each batch)")
     dm.add_argument("--json", action="store_true")
 
     bench = sub.add_parser("bench", help="measure speed")
@@ -229,7 +236,8 @@ def _serve(args: argparse.Namespace) -> int:
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     install_fast_loop()
-    session = Session(solver=args.solver, busy=args.busy_poll)
+    session = Session(solver=args.solver, busy=args.busy_poll,
+                      helper=None if args.helper else False)
     try:
         asyncio.run(run_server(args.host, args.port, session, handle_signals=True))
     except OSError as err:
@@ -297,7 +305,8 @@ def _demo(args: argparse.Namespace) -> int:
         return _fail("demo", "players and spectators must be >= 0 and seconds > 0")
     result = run_demo(args.players, args.spectators, args.seconds, solver=args.solver,
                       render=args.render, render_mode=args.render_mode,
-                      busy=None if args.busy_poll else False)
+                      busy=None if args.busy_poll else False,
+                      helper=None if args.helper else False)
     if args.json:
         print(json.dumps(result.as_json()))
     else:

@@ -83,7 +83,8 @@ def pin_to_cores(role: str, cores: Cores) -> None:
     os.sched_setaffinity(0, cores[:1] if role == "server" else cores[1:])
 
 
-def _serve_process(pipe: Connection, solver: str, cores: Cores, busy: bool) -> None:
+def _serve_process(pipe: Connection, solver: str, cores: Cores, busy: bool,
+                   helper: bool | None) -> None:
     """The server process: report the port, serve until told to stop, report metrics."""
     from server.app import Session, install_fast_loop, run_server
 
@@ -94,7 +95,7 @@ def _serve_process(pipe: Connection, solver: str, cores: Cores, busy: bool) -> N
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
         loop.add_reader(pipe.fileno(), stop.set)  # any message from the parent: stop
-        session = Session(solver=solver, busy=busy)
+        session = Session(solver=solver, busy=busy, helper=helper)
         await run_server("127.0.0.1", 0, session, stop, ready=pipe.send)
         return session.metrics.as_json()
 
@@ -105,11 +106,12 @@ class EmbeddedServer:
     """A server process on loopback for the length of a ``with`` block."""
 
     def __init__(self, solver: str = "analytic", cores: Cores = (),
-                 busy: bool = False) -> None:
+                 busy: bool = False, helper: bool | None = None) -> None:
         ctx = mp.get_context("spawn")  # a fresh interpreter: no inherited event loop
         self._pipe, child = ctx.Pipe()
         self._process = ctx.Process(target=_serve_process,
-                                    args=(child, solver, cores, busy), daemon=True)
+                                    args=(child, solver, cores, busy, helper),
+                                    daemon=True)
         self.port = 0
         self.metrics: dict[str, object] = {}
 
@@ -207,16 +209,18 @@ async def run_clients(url: str, players: int, spectators: int, seconds: float,
 def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
              motion: Path | None = None, solver: str = "analytic",
              render: Path | None = None, render_mode: str = "interpolate",
-             busy: bool | None = None) -> DemoResult:
+             busy: bool | None = None, helper: bool | None = None) -> DemoResult:
     """The session; with ``render``, a headless viewer also draws the room to PNG files
     there and its ``capture_to_render`` joins the latency stages. ``busy``: the server
-    busy-polls (``server.busy``); by default when it has a core of its own."""
+    busy-polls (``server.busy``); by default when it has a core of its own. ``helper``:
+    a solver helper thread on the clients' core (``server.helper``); by default with
+    busy polling."""
     motion = motion or builtin_motion_path()
     cores = demo_cores()
     if busy is None:
         busy = len(cores) >= 2  # pin_to_cores gives the server the first core alone
     try:
-        with EmbeddedServer(solver, cores, busy) as server:
+        with EmbeddedServer(solver, cores, busy, helper) as server:
             pin_to_cores("spectators", cores)  # they run here (see run_clients)
             frames_sent, spectator_stats, viewed = _run(run_clients(
                 server.url, players, spectators, seconds, motion, render, render_mode,

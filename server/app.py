@@ -41,6 +41,7 @@ from protocol.codec import decode_tracker_poses
 from server.avatars import AvatarSolver
 from server.busy import BusyPoll
 from server.clock import now
+from server.helper import spare_cores
 from server.metrics import Metrics
 from server.outbox import Outbox
 from server.room import Avatar, Delivery, Room, Spectator, send_deliveries
@@ -60,9 +61,12 @@ class Session:
     """All rooms of one server process."""
 
     def __init__(self, rig: Rig | None = None, solver: str = "analytic",
-                 reconnect_grace: float = RECONNECT_GRACE, busy: bool = False) -> None:
+                 reconnect_grace: float = RECONNECT_GRACE, busy: bool = False,
+                 helper: bool | None = None) -> None:
         """``busy``: poll without sleeping and keep the frame path warm between bursts
-        (``server.busy``); it takes a whole core."""
+        (``server.busy``); it takes a whole core. ``helper``: solve each batch with a
+        helper thread on the cores this process is not pinned to (``server.helper``);
+        by default with busy polling, where there are such cores."""
         self.rig = rig or build_rig(load_makehuman().skeleton)
         self.solver_name = solver
         self.reconnect_grace = reconnect_grace
@@ -71,8 +75,14 @@ class Session:
         self._ids = itertools.count(1)
         self._owners: dict[int, ServerConnection] = {}  # avatar id -> its live connection
         self.busy = BusyPoll(self.rig, solver) if busy else None
-        # before serving: a first join must not wait for the compiled solver to load
-        AvatarSolver(self.rig, solver).warm_up()
+        # every room's avatars in one solver (avatar ids are the session's), so that one
+        # helper thread serves them all; room for 32 before its arrays grow (and its
+        # helper restarts)
+        self.avatars = AvatarSolver(self.rig, solver, capacity=32, helper_cores=(
+            spare_cores() if (busy if helper is None else helper) else ()))
+        # before serving: a first join must not wait for the compiled solver (and the
+        # helper) to load
+        self.avatars.warm_up()
         # solve on the event loop's own thread: a batch of a room is tens of avatars, and
         # waking a worker thread costs ~1 ms in a VM, more than it saves; scale out over
         # cores with processes instead. Rechecked with the worker free to run on the
@@ -82,8 +92,7 @@ class Session:
 
     def room(self, name: str) -> Room:
         if name not in self.rooms:  # rooms are created on first join
-            self.rooms[name] = Room(name, AvatarSolver(self.rig, self.solver_name),
-                                    self.metrics,
+            self.rooms[name] = Room(name, self.avatars, self.metrics,
                                     bursts=self.busy.bursts if self.busy else None)
         return self.rooms[name]
 
@@ -289,6 +298,7 @@ async def run_server(host: str, port: int, session: Session | None = None,
                     await poller
         server.close(close_connections=True)
         await server.wait_closed()
+    session.avatars.close()
     return session
 
 

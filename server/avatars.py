@@ -14,9 +14,11 @@ import functools
 import numpy as np
 from numpy.typing import NDArray
 
+from server.helper import SolveHelper
 from solver.calibration import EFFECTOR_DEVICES, Calibration, calibrate
 from solver.fk import forward_kinematics
 from solver.ik import PoseBatch, Solver
+from solver.ik.shared import solve_analytic_shared
 from solver.kernels import bone_targets
 from solver.rig import EFFECTORS, Rig
 
@@ -50,7 +52,10 @@ def driving_indices(roles: tuple[str, ...]) -> NDArray[np.intp]:
 class AvatarSolver:
     """Calibrate avatars and solve any subset of them in one call to the solver."""
 
-    def __init__(self, rig: Rig, solver: str = "analytic", capacity: int = 8) -> None:
+    def __init__(self, rig: Rig, solver: str = "analytic", capacity: int = 8,
+                 helper_cores: tuple[int, ...] = ()) -> None:
+        """``helper_cores``: solve each batch with a helper thread spinning there
+        (``server.helper``; the analytic solver only)."""
         self.rig = rig
         self.solver = Solver(rig, solver)
         self.calibrations: dict[int, Calibration] = {}
@@ -62,6 +67,9 @@ class AvatarSolver:
         self._mount_p = np.empty((capacity, E, 3))  # driving devices' mounts
         self._mount_q = np.empty((capacity, E, 4))
         self._targets = np.empty((capacity, E, 7))  # staged: each avatar's next targets
+        self._iterations = np.zeros(capacity, dtype=np.int64)
+        self.helper_cores = helper_cores if solver == "analytic" else ()
+        self._helper: SolveHelper | None = None
 
     def warm_up(self) -> None:
         """Solve once now: loading the compiled solver takes ~0.2 s, not the first frame's."""
@@ -71,14 +79,20 @@ class AvatarSolver:
         self.solver.solve(np.concatenate([gp[:, eff], gq[:, eff]], axis=-1), state)
         bone_targets(np.zeros((1, 7)), np.zeros((1, 3)), np.tile([0.0, 0, 0, 1], (1, 1)),
                      np.empty((1, 7)))
+        helper = self.helper()
+        if helper is not None:  # its loop and the shared solve load now too (n = 0)
+            solve_analytic_shared(*helper.batch_args(0))
 
     def _new_slot(self) -> int:
         used = set(self._slot.values())
         free = next((s for s in range(len(self._roots)) if s not in used), None)
         if free is None:  # grow: double every array
             free = len(self._roots)
+            if self._helper is not None:  # it holds the arrays being replaced: a new one
+                self._helper.stop(wait=False)  # comes with the next solve
+                self._helper = None
             for name in ("_rotations", "_roots", "_offsets", "_mount_p", "_mount_q",
-                         "_targets"):
+                         "_targets", "_iterations"):
                 a = getattr(self, name)
                 setattr(self, name, np.concatenate([a, np.empty_like(a)]))
         return free
@@ -114,11 +128,36 @@ class AvatarSolver:
         device = poses.take(driving_indices(roles), axis=0)  # new (E, 7), C order
         bone_targets(device, self._mount_p[slot], self._mount_q[slot], self._targets[slot])
 
+    def helper(self) -> SolveHelper | None:
+        """The helper thread over the current arrays (started on first use), if any."""
+        if self._helper is None and self.helper_cores:
+            self._helper = SolveHelper(self.helper_cores, self._shared_args(),
+                                       len(self._roots), self.rig.skeleton.num_joints)
+        return self._helper
+
+    def close(self) -> None:
+        """Stop the helper thread, if one runs (a later solve starts a new one)."""
+        if self._helper is not None:
+            self._helper.stop()
+            self._helper = None
+
+    def _shared_args(self) -> tuple[object, ...]:
+        return self.solver.shared_args(self._offsets, self._targets, self._rotations,
+                                       self._roots, self._iterations)
+
     def solve_staged(self, avatar_ids: list[int]) -> PoseBatch:
         """Solve these avatars (each staged) as one batch, each warm-started from its last
         pose; their new poses in the order asked (new arrays: the next solve does not
         change them)."""
         slot_list = [self._slot[a] for a in avatar_ids]
+        helper = self.helper() if slot_list else None
+        if helper is not None:  # in place, wherever the rows are, with the helper
+            n = len(slot_list)
+            helper.rows[:n] = slot_list
+            solve_analytic_shared(*helper.batch_args(n))
+            slots = helper.rows[:n]
+            return PoseBatch(self._rotations[slots], self._roots[slots],
+                             self._iterations[slots])
         first = slot_list[0] if slot_list else 0
         if slot_list == list(range(first, first + len(slot_list))):
             # side by side in slot order (a room's whole burst, sorted by slot): solve the

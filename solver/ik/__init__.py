@@ -100,6 +100,19 @@ class Solver:
                                 else d.get("step_limit", 0.0))
         self.arrays: ChainArrays = chain_arrays(rig)
 
+    def shared_args(self, offsets: NDArray[np.float64], targets: NDArray[np.float64],
+                    rotations: NDArray[np.float64], root: NDArray[np.float64],
+                    iterations: NDArray[np.int64]) -> tuple[object, ...]:
+        """The analytic solver's arguments over whole arrays of avatars (offsets (B, J,
+        3), targets (B, 6, 7), rotations (B, J, 4), root (B, 3), iterations (B,)), as
+        ``solver.ik.shared`` takes them after its control and rows."""
+        if self.name != "analytic":
+            raise ValueError(f"only the analytic solver shares a batch, not {self.name}")
+        a, o = self.arrays, self.options
+        return (a.parents, offsets, a.canonical, a.pre, a.post, a.lo, a.hi, a.dofmask,
+                a.pelvis, a.chains, a.lengths, targets, rotations, root, o.rotation_weight,
+                self.damping, self.max_iterations, o.epsilon, iterations)
+
     def solve(self, targets: NDArray[np.float64], state: PoseBatch,
               offsets: NDArray[np.float64] | None = None) -> None:
         """Solve every avatar of the batch towards its targets (B, 6, 7), in place.

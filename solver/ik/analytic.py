@@ -370,12 +370,8 @@ def _reach_with_spine(parents, offsets, q, gq, gp, pre, post, lo, hi, dofmask, u
 
 
 @njit(cache=True)
-def solve_analytic_range(parents, offsets, canon, pre, post, lo, hi, dofmask, pelvis,
-                         chains, lengths, targets, q, root, w_rot, lam, refine, eps,
-                         iterations, first, last):
-    """Avatars first..last-1 of the batch, one after the other."""
-    J = q.shape[1]
-    shared = offsets.shape[0] == 1
+def analytic_work(J, chains, lengths):
+    """Work arrays for solving avatars one after the other (``solve_analytic_one``)."""
     gq = np.empty((J, 4))
     gp = np.empty((J, 3))
     scratch = dls_scratch(3 * chains.shape[1])
@@ -392,36 +388,55 @@ def solve_analytic_range(parents, offsets, canon, pre, post, lo, hi, dofmask, pe
         slots[c] = 0 if c == 0 else c + 1
     tree = dls_tree_scratch(3 * nu, 3)
     qsave = np.empty((J, 4))
+    return gq, gp, scratch, upper, effs, slots, tree, qsave
+
+
+@njit(cache=True)
+def solve_analytic_one(parents, off, canon, pre, post, lo, hi, dofmask, pelvis, chains,
+                       lengths, tg, qb, rootb, w_rot, lam, refine, eps, work):
+    """One avatar (its bone offsets, targets, pose and root), in place; returns the
+    refinement's iterations. ``work``: from ``analytic_work``."""
+    gq, gp, scratch, upper, effs, slots, tree, qsave = work
+    place_root(parents, off, qb, rootb, gq, gp, pelvis, tg[1])
+    solve_spine(parents, off, qb, gq, gp, canon, pre, post, lo, hi, chains[0],
+                lengths[0], tg[0])
+    for c in (1, 2):  # arms: clavicle, upper arm, forearm, hand
+        ch = chains[c]
+        aim_clavicle(parents, off, qb, gq, gp, canon, pre, post, lo, hi, ch[0], ch[1],
+                     ch[2], ch[3], tg[c + 1], CLAVICLE_SHARE)
+        solve_limb(parents, off, qb, gq, gp, canon, pre, post, lo, hi, ch[1], ch[2],
+                   ch[3], tg[c + 1], True)
+    for c in (3, 4):  # legs: thigh, shin, foot
+        ch = chains[c]
+        fk_joints(parents, off, qb, gq, gp, ch, 1)
+        solve_limb(parents, off, qb, gq, gp, canon, pre, post, lo, hi, ch[0], ch[1],
+                   ch[2], tg[c + 1], False)
+    total = 0
+    if refine > 0:
+        for c in range(chains.shape[0]):
+            eff_slot = 0 if c == 0 else c + 1
+            total += dls_chain(parents, off, qb, gq, gp, pre, post, lo, hi, dofmask,
+                               chains[c], lengths[c], tg[eff_slot], w_rot, lam,
+                               refine, eps, scratch)
+        if _arm_out_of_reach(off, gp, chains, tg, eps):
+            total += _reach_with_spine(parents, off, qb, gq, gp, pre, post, lo, hi,
+                                       dofmask, upper, effs, slots, tg, w_rot, lam,
+                                       refine, eps, tree, qsave)
+    return total
+
+
+@njit(cache=True)
+def solve_analytic_range(parents, offsets, canon, pre, post, lo, hi, dofmask, pelvis,
+                         chains, lengths, targets, q, root, w_rot, lam, refine, eps,
+                         iterations, first, last):
+    """Avatars first..last-1 of the batch, one after the other."""
+    shared = offsets.shape[0] == 1
+    work = analytic_work(q.shape[1], chains, lengths)
     for b in range(first, last):
-        off = offsets[0] if shared else offsets[b]
-        qb = q[b]
-        tg = targets[b]
-        place_root(parents, off, qb, root[b], gq, gp, pelvis, tg[1])
-        solve_spine(parents, off, qb, gq, gp, canon, pre, post, lo, hi, chains[0],
-                    lengths[0], tg[0])
-        for c in (1, 2):  # arms: clavicle, upper arm, forearm, hand
-            ch = chains[c]
-            aim_clavicle(parents, off, qb, gq, gp, canon, pre, post, lo, hi, ch[0], ch[1],
-                         ch[2], ch[3], tg[c + 1], CLAVICLE_SHARE)
-            solve_limb(parents, off, qb, gq, gp, canon, pre, post, lo, hi, ch[1], ch[2],
-                       ch[3], tg[c + 1], True)
-        for c in (3, 4):  # legs: thigh, shin, foot
-            ch = chains[c]
-            fk_joints(parents, off, qb, gq, gp, ch, 1)
-            solve_limb(parents, off, qb, gq, gp, canon, pre, post, lo, hi, ch[0], ch[1],
-                       ch[2], tg[c + 1], False)
-        total = 0
-        if refine > 0:
-            for c in range(chains.shape[0]):
-                eff_slot = 0 if c == 0 else c + 1
-                total += dls_chain(parents, off, qb, gq, gp, pre, post, lo, hi, dofmask,
-                                   chains[c], lengths[c], tg[eff_slot], w_rot, lam,
-                                   refine, eps, scratch)
-            if _arm_out_of_reach(off, gp, chains, tg, eps):
-                total += _reach_with_spine(parents, off, qb, gq, gp, pre, post, lo, hi,
-                                           dofmask, upper, effs, slots, tg, w_rot, lam,
-                                           refine, eps, tree, qsave)
-        iterations[b] = total
+        iterations[b] = solve_analytic_one(
+            parents, offsets[0] if shared else offsets[b], canon, pre, post, lo, hi,
+            dofmask, pelvis, chains, lengths, targets[b], q[b], root[b], w_rot, lam,
+            refine, eps, work)
 
 
 @njit(cache=True, parallel=True)

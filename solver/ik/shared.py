@@ -1,0 +1,149 @@
+"""One batch of the analytic solver shared by two threads: the caller and a helper
+thread that spins, on another core, waiting for work.
+
+Waking a sleeping thread costs more in this VM than half a batch saves (see
+``server.app``), so the helper never sleeps: it polls a control word in a compiled loop
+that has released the GIL (``analytic_helper``). The caller posts a batch (its rows of
+the avatar arrays) in that word, and both threads claim avatars from it one at a time
+(compare-and-swap), so the split follows whoever is free: a helper that is not running
+at that moment claims nothing, and the caller solves everything, as before.
+
+A helper can lose its core in the middle of an avatar (it runs only when that core is
+otherwise idle), so it never writes the batch's arrays: it solves a copy of its avatar's
+pose into its own rows (``out_q``, ``out_root``, ``out_it``) and then marks the avatar
+done with a compare-and-swap. The caller copies those results in. An avatar the helper
+still holds when the caller has waited TAKEOVER_SPINS is taken over (the same
+compare-and-swap, so exactly one of them wins) and solved by the caller; the helper's
+late result is then dropped. Each avatar is solved by ``solve_analytic_one`` from the
+same inputs either way, so the results are bit for bit those of ``solve_analytic_range``.
+
+``control`` (``new_control``): CLAIM = seq << 40 | n << 20 | next avatar to claim; SEQ,
+the caller's batch count (wrapping, never 0); STOP ends the helper; READY is set once
+the helper runs its loop (without the GIL). ``state[i]`` says
+who solved avatar i of batch seq: seq << 2 | HELPER or seq << 2 | CALLER.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+from solver.atomics import atomic_cas, atomic_load, atomic_store, cpu_pause
+from solver.ik.analytic import analytic_work, solve_analytic_one
+
+CLAIM, SEQ, STOP, READY = 0, 1, 2, 3
+FIELD = 20  # bits of n and of the next avatar in CLAIM
+MAX_BATCH = (1 << FIELD) - 1
+SEQ_MOD = 1 << 22  # batch numbers wrap here (CLAIM stays positive)
+HELPER, CALLER = 1, 2
+# how long the caller waits for an avatar the helper holds before it solves that avatar
+# itself: spins of the wait loop, ~40 ns each here (a pause and a look at the batch), so
+# ~0.15 ms, several times one avatar's solve in place
+TAKEOVER_SPINS = 4000
+
+
+def new_control() -> NDArray[np.int64]:
+    return np.zeros(4, dtype=np.int64)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _claim(control):
+    """The next unclaimed avatar of the posted batch (its index in rows), or -1; and the
+    batch's seq."""
+    while True:
+        word = atomic_load(control, CLAIM)
+        seq = word >> (2 * FIELD)
+        n = (word >> FIELD) & MAX_BATCH
+        i = word & MAX_BATCH
+        if i >= n:
+            return -1, seq
+        if atomic_cas(control, CLAIM, word, word + 1):
+            return i, seq
+
+
+@njit(cache=True, nogil=True)
+def analytic_helper(control, rows, state, out_q, out_root, out_it, parents, offsets,
+                    canon, pre, post, lo, hi, dofmask, pelvis, chains, lengths, targets,
+                    q, root, w_rot, lam, refine, eps, iterations):
+    """The helper's loop, until STOP: claim an avatar, solve it into its own rows, mark
+    it done unless the caller took it over; spin while there is nothing to claim.
+    Returns the avatars whose results it handed over."""
+    work = analytic_work(q.shape[1], chains, lengths)
+    handed = 0
+    atomic_store(control, READY, 1)
+    while atomic_load(control, STOP) == 0:
+        i, seq = _claim(control)
+        if i < 0:
+            cpu_pause()
+            continue
+        before = atomic_load(state, i)
+        if before >> 2 == seq:  # the caller took it over while this thread was away
+            continue
+        b = rows[i]
+        out_q[i] = q[b]
+        out_root[i] = root[b]
+        out_it[i] = solve_analytic_one(
+            parents, offsets[b], canon, pre, post, lo, hi, dofmask, pelvis, chains,
+            lengths, targets[b], out_q[i], out_root[i], w_rot, lam, refine, eps, work)
+        if atomic_cas(state, i, before, (seq << 2) | HELPER):
+            handed += 1
+    return handed
+
+
+@njit(cache=True, nogil=True)
+def _solve_here(i, seq, rows, state, parents, offsets, canon, pre, post, lo, hi, dofmask,
+                pelvis, chains, lengths, targets, q, root, w_rot, lam, refine, eps,
+                iterations, work):
+    b = rows[i]
+    iterations[b] = solve_analytic_one(
+        parents, offsets[b], canon, pre, post, lo, hi, dofmask, pelvis, chains, lengths,
+        targets[b], q[b], root[b], w_rot, lam, refine, eps, work)
+
+
+@njit(cache=True, nogil=True)
+def solve_analytic_shared(control, rows, n, state, out_q, out_root, out_it, parents,
+                          offsets, canon, pre, post, lo, hi, dofmask, pelvis, chains,
+                          lengths, targets, q, root, w_rot, lam, refine, eps, iterations):
+    """Post the avatars rows[:n] (rows of the arrays the helper was given), solve them
+    with the helper, return when all are solved and in place. Returns how many the
+    helper solved."""
+    seq = atomic_load(control, SEQ) % SEQ_MOD + 1
+    atomic_store(control, SEQ, seq)
+    atomic_store(control, CLAIM, (seq << (2 * FIELD)) | (n << FIELD))
+    work = analytic_work(q.shape[1], chains, lengths)
+    mine = (seq << 2) | CALLER
+    theirs = (seq << 2) | HELPER
+    while True:
+        i, _ = _claim(control)
+        if i < 0:
+            break
+        _solve_here(i, seq, rows, state, parents, offsets, canon, pre, post, lo, hi,
+                    dofmask, pelvis, chains, lengths, targets, q, root, w_rot, lam,
+                    refine, eps, iterations, work)
+        atomic_store(state, i, mine)
+    # wait for the avatars the helper holds; past TAKEOVER_SPINS, take them over
+    spins = 0
+    while True:
+        held = 0
+        for i in range(n):
+            s = atomic_load(state, i)
+            if s != mine and s != theirs:
+                held += 1
+                if spins >= TAKEOVER_SPINS and atomic_cas(state, i, s, mine):
+                    _solve_here(i, seq, rows, state, parents, offsets, canon, pre, post,
+                                lo, hi, dofmask, pelvis, chains, lengths, targets, q, root,
+                                w_rot, lam, refine, eps, iterations, work)
+        if held == 0:
+            break
+        cpu_pause()
+        spins += 1
+    helped = 0
+    for i in range(n):
+        if atomic_load(state, i) == theirs:
+            b = rows[i]
+            q[b] = out_q[i]
+            root[b] = out_root[i]
+            iterations[b] = out_it[i]
+            helped += 1
+    return helped

@@ -1,0 +1,105 @@
+"""A batch shared with a helper thread (``solver.ik.shared``, ``server.helper``): the
+same poses as the server alone, the helper taking part where a core is free, and an
+avatar the helper holds and never finishes taken over by the caller."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+import numpy as np
+import pytest
+from numba import njit
+
+from server.app import Session
+from server.avatars import AvatarSolver
+from solver.atomics import atomic_load
+from solver.ik.shared import (
+    CLAIM,
+    FIELD,
+    MAX_BATCH,
+    _claim,
+    new_control,
+    solve_analytic_shared,
+)
+from solver.motion import ViveRecording
+
+N = 8
+
+
+def poses(rec: ViveRecording, frame: int) -> np.ndarray:
+    return np.concatenate([rec.positions[frame], rec.rotations[frame]], axis=1)
+
+
+@pytest.fixture(scope="module")
+def session() -> Session:
+    return Session()
+
+
+def _calibrated(session: Session, rec: ViveRecording, cores: tuple[int, ...]) -> AvatarSolver:
+    solver = AvatarSolver(session.rig, helper_cores=cores)
+    for a in range(N):
+        solver.calibrate(a, rec.devices, rec.positions[0], rec.rotations[0])
+    return solver
+
+
+def test_a_helper_gives_the_same_poses_and_takes_part(session: Session,
+                                                     recording: ViveRecording) -> None:
+    everywhere = tuple(range(os.cpu_count() or 1))
+    helped, alone = (_calibrated(session, recording, c) for c in (everywhere, ()))
+    try:
+        for f in range(1, 60):
+            for solver in (helped, alone):
+                for a in range(N):
+                    solver.stage(a, recording.devices, poses(recording, f + 25 * a))
+            order = list(range(N)) if f % 2 else [5, 0, 7, 2, 1, 6, 3, 4]  # any rows
+            h, a = helped.solve_staged(order), alone.solve_staged(order)
+            np.testing.assert_array_equal(h.rotations, a.rotations)
+            np.testing.assert_array_equal(h.root, a.root)
+            np.testing.assert_array_equal(h.iterations, a.iterations)
+        helper = helped.helper()
+        assert helper is not None
+    finally:
+        helped.close()
+    if len(everywhere) >= 2:  # a core was free for it while this thread solved
+        assert helper.handed > 0
+
+
+@njit(nogil=True)
+def _take_one_and_vanish(control: np.ndarray) -> int:
+    """A helper that claims an avatar of the next batch and never finishes it."""
+    while (atomic_load(control, CLAIM) >> FIELD) & MAX_BATCH == 0:
+        pass
+    i, _ = _claim(control)
+    return i
+
+
+def test_an_avatar_the_helper_never_finishes_is_taken_over(session: Session,
+                                                          recording: ViveRecording) -> None:
+    ref = _calibrated(session, recording, ())
+    shared = _calibrated(session, recording, ())
+    for solver in (ref, shared):
+        for a in range(N):
+            solver.stage(a, recording.devices, poses(recording, 40 + 25 * a))
+    expected = ref.solve_staged(list(range(N)))
+    # the shared batch's arrays, with no helper thread: one that vanishes instead
+    control, rows = new_control(), np.zeros(N, dtype=np.int64)
+    J = session.rig.skeleton.num_joints
+    own = (np.zeros(N, dtype=np.int64), np.empty((N, J, 4)), np.empty((N, 3)),
+           np.zeros(N, dtype=np.int64))
+    args = shared._shared_args()
+    rows[:N] = np.arange(N)
+    warm = new_control()
+    warm[CLAIM] = 1 << FIELD  # a batch of one: compiled now, not while the batch runs
+    assert _take_one_and_vanish(warm) == 0
+    taken: list[int] = []
+    thief = threading.Thread(target=lambda: taken.append(_take_one_and_vanish(control)))
+    thief.start()
+    time.sleep(0.05)  # spinning, waiting for the batch
+    handed = solve_analytic_shared(control, rows, N, *own, *args)
+    thief.join(5)
+    assert taken and 0 <= taken[0] < N  # it held one avatar...
+    assert handed == 0  # ...never handed it over, and the caller solved all eight
+    np.testing.assert_array_equal(shared._rotations[:N], expected.rotations)
+    np.testing.assert_array_equal(shared._roots[:N], expected.root)
