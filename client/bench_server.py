@@ -18,11 +18,13 @@ BUDGET_MS = 2.0
 
 
 def bench_server(counts: list[int], seconds: float = 4.0, budget_ms: float = BUDGET_MS,
-                 progress: Callable[[DemoResult], None] | None = None) -> dict[str, object]:
+                 progress: Callable[[DemoResult], None] | None = None,
+                 helper: bool | None = None) -> dict[str, object]:
+    """``helper``: as ``run_demo``'s (False: the server solves alone)."""
     steps = []
     best = 0
     for n in counts:
-        result = run_demo(players=n, spectators=n, seconds=seconds)
+        result = run_demo(players=n, spectators=n, seconds=seconds, helper=helper)
         summary = result.latency.summary()
         p99 = summary.get("server", {}).get("p99", float("inf"))
         complete = result.frames_delivered == result.frames_solved * n

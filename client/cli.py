@@ -130,6 +130,8 @@ def _parser() -> argparse.ArgumentParser:
     bv.add_argument("--counts", type=_positive_ints, default=[4, 8, 16, 24, 32, 48, 64],
                     help="players (= spectators) to try, in order")
     bv.add_argument("--seconds", type=float, default=4.0, help="length of each step")
+    bv.add_argument("--no-helper", dest="helper", action="store_false",
+                    help="the server solves alone (see demo --no-helper)")
     bv.add_argument("--json", action="store_true")
     return p
 
@@ -172,7 +174,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "bench" and args.bench == "server":
         from client.bench_server import bench_server, format_server_table
 
-        result = bench_server(args.counts, args.seconds)
+        result = bench_server(args.counts, args.seconds,
+                              helper=None if args.helper else False)
         print(json.dumps(result) if args.json else format_server_table(result))
         return 0
     return 2

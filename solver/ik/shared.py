@@ -19,7 +19,8 @@ same inputs either way, so the results are bit for bit those of ``solve_analytic
 
 ``control`` (``new_control``): CLAIM = seq << 40 | n << 20 | next avatar to claim; SEQ,
 the caller's batch count (wrapping, never 0); STOP ends the helper; READY is set once
-the helper runs its loop (without the GIL). ``state[i]`` says
+the helper runs its loop (without the GIL); DONE = seq << 32 | avatars solved (a late
+helper's count for an earlier batch is dropped). ``state[i]`` says
 who solved avatar i of batch seq: seq << 2 | HELPER or seq << 2 | CALLER.
 """
 
@@ -32,19 +33,22 @@ from numpy.typing import NDArray
 from solver.atomics import atomic_cas, atomic_load, atomic_store, cpu_pause
 from solver.ik.analytic import analytic_work, solve_analytic_one
 
-CLAIM, SEQ, STOP, READY = 0, 1, 2, 3
+CLAIM, SEQ, STOP, READY, DONE = 0, 1, 2, 3, 4
 FIELD = 20  # bits of n and of the next avatar in CLAIM
 MAX_BATCH = (1 << FIELD) - 1
 SEQ_MOD = 1 << 22  # batch numbers wrap here (CLAIM stays positive)
 HELPER, CALLER = 1, 2
-# how long the caller waits for an avatar the helper holds before it solves that avatar
-# itself: spins of the wait loop, ~40 ns each here (a pause and a look at the batch), so
-# ~0.15 ms, several times one avatar's solve in place
-TAKEOVER_SPINS = 4000
+# how long the caller waits for the avatars the helper holds before it solves them
+# itself: spins of the wait loop (a pause and a look at DONE), ~25 ns each here, so
+# ~10 us. Waiting on saves at most the rest of the helper's avatar (~20 us in place);
+# a helper that lost its core costs the wait. At ~0.3 ms `bench server` sustained 32
+# players instead of 48: with 40 and more clients on its core the helper often loses it
+# holding an avatar
+TAKEOVER_SPINS = 400
 
 
 def new_control() -> NDArray[np.int64]:
-    return np.zeros(4, dtype=np.int64)
+    return np.zeros(5, dtype=np.int64)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -60,6 +64,15 @@ def _claim(control):
             return -1, seq
         if atomic_cas(control, CLAIM, word, word + 1):
             return i, seq
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _count_done(control, seq):
+    """One more avatar of batch seq solved (nothing if that batch is over)."""
+    while True:
+        word = atomic_load(control, DONE)
+        if word >> 32 != seq or atomic_cas(control, DONE, word, word + 1):
+            return
 
 
 @njit(cache=True, nogil=True)
@@ -87,6 +100,7 @@ def analytic_helper(control, rows, state, out_q, out_root, out_it, parents, offs
             parents, offsets[b], canon, pre, post, lo, hi, dofmask, pelvis, chains,
             lengths, targets[b], out_q[i], out_root[i], w_rot, lam, refine, eps, work)
         if atomic_cas(state, i, before, (seq << 2) | HELPER):
+            _count_done(control, seq)
             handed += 1
     return handed
 
@@ -110,6 +124,7 @@ def solve_analytic_shared(control, rows, n, state, out_q, out_root, out_it, pare
     helper solved."""
     seq = atomic_load(control, SEQ) % SEQ_MOD + 1
     atomic_store(control, SEQ, seq)
+    atomic_store(control, DONE, seq << 32)
     atomic_store(control, CLAIM, (seq << (2 * FIELD)) | (n << FIELD))
     work = analytic_work(q.shape[1], chains, lengths)
     mine = (seq << 2) | CALLER
@@ -122,22 +137,21 @@ def solve_analytic_shared(control, rows, n, state, out_q, out_root, out_it, pare
                     dofmask, pelvis, chains, lengths, targets, q, root, w_rot, lam,
                     refine, eps, iterations, work)
         atomic_store(state, i, mine)
-    # wait for the avatars the helper holds; past TAKEOVER_SPINS, take them over
+        _count_done(control, seq)
+    # wait for the avatars the helper holds; past TAKEOVER_SPINS, take them over: after
+    # that look at each, every avatar is solved, here or handed over
     spins = 0
-    while True:
-        held = 0
-        for i in range(n):
-            s = atomic_load(state, i)
-            if s != mine and s != theirs:
-                held += 1
-                if spins >= TAKEOVER_SPINS and atomic_cas(state, i, s, mine):
-                    _solve_here(i, seq, rows, state, parents, offsets, canon, pre, post,
-                                lo, hi, dofmask, pelvis, chains, lengths, targets, q, root,
-                                w_rot, lam, refine, eps, iterations, work)
-        if held == 0:
-            break
+    while atomic_load(control, DONE) != (seq << 32) | n:
         cpu_pause()
         spins += 1
+        if spins >= TAKEOVER_SPINS:
+            for i in range(n):
+                s = atomic_load(state, i)
+                if s != mine and s != theirs and atomic_cas(state, i, s, mine):
+                    _solve_here(i, seq, rows, state, parents, offsets, canon, pre,
+                                post, lo, hi, dofmask, pelvis, chains, lengths, targets,
+                                q, root, w_rot, lam, refine, eps, iterations, work)
+            break
     helped = 0
     for i in range(n):
         if atomic_load(state, i) == theirs:
