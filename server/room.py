@@ -113,9 +113,11 @@ class Spectator:
     # the socket, for writing a batch straight from the solve (see Room.deliver)
     connection: ServerConnection | None = None
 
-    def writable(self) -> bool:
+    def direct(self, t: float) -> bool:
+        """A batch may go straight to the socket (loop time t): the outbox has nothing
+        queued and no rate to keep, and the socket keeps up."""
         c = self.connection
-        return (c is not None and c.transport is not None
+        return (self.outbox.ready(t) and c is not None and c.transport is not None
                 and c.transport.get_write_buffer_size() < DIRECT_WRITE_LIMIT)
 
 
@@ -235,19 +237,27 @@ class Room:
         # Again with the cheaper frame path: in place a one-avatar solve takes ~62 us (20
         # hot) and reading a frame ~22 us of the ~33 between frames, so the reads still
         # fell behind (p99 server 1.45-1.62 against 1.29-1.37 ms, two pairs)
-        if self._scheduled and self.bursts is not None:
-            self.bursts.closed()
+        closes = self._scheduled and self.bursts is not None
         self._scheduled = False
-        pending = [(a, f, t) for a, (f, t) in self._pending.items() if self.is_calibrated(a)]
+        try:
+            self._solve_and_deliver()
+        finally:
+            if closes:  # after the batch is out: the busy poller it wakes can wait
+                assert self.bursts is not None
+                self.bursts.closed()
+
+    def _solve_and_deliver(self) -> None:
+        calibrated, slot = self.solver.calibrations, self.solver.slot_order
+        pending = [(a, f, t) for a, (f, t) in self._pending.items() if a in calibrated]
         self._pending.clear()
         if not pending:
             return
-        pending.sort(key=lambda p: self.solver.slot_order(p[0]))  # solved in place
-        solved = self.solver.solve_staged([a for a, _, _ in pending])
+        pending.sort(key=lambda p: slot(p[0]))  # solved in place
+        ids = [a for a, _, _ in pending]
+        solved = self.solver.solve_staged(ids)
         t_solved = now()
-        shared = SharedBatch([a for a, _, _ in pending], [f.seq for _, f, _ in pending],
-                             solved.root, solved.rotations,
-                             [f.t_capture_server for _, f, _ in pending],
+        shared = SharedBatch(ids, [f.seq for _, f, _ in pending], solved.root,
+                             solved.rotations, [f.t_capture_server for _, f, _ in pending],
                              [t for _, _, t in pending], t_solved)
         self.metrics.frames_solved += len(pending)
         self.metrics.batches += 1
@@ -257,7 +267,7 @@ class Room:
         """Every spectator gets the batch: written to the socket at once when it is idle
         and keeping up (one encoding, no task switch), else through its outbox."""
         t = asyncio.get_running_loop().time()
-        direct = [s for s in self.spectators.values() if s.outbox.ready(t) and s.writable()]
+        direct = [s for s in self.spectators.values() if s.direct(t)]
         if direct:
             broadcast([s.connection for s in direct if s.connection is not None],
                       shared.encoded())
