@@ -106,9 +106,10 @@ def analytic_helper(control, rows, state, out_q, out_root, out_it, parents, offs
 
 
 @njit(cache=True, nogil=True)
-def _solve_here(i, seq, rows, state, parents, offsets, canon, pre, post, lo, hi, dofmask,
-                pelvis, chains, lengths, targets, q, root, w_rot, lam, refine, eps,
-                iterations, work):
+def _solve_here(i, rows, parents, offsets, canon, pre, post, lo, hi, dofmask, pelvis,
+                chains, lengths, targets, q, root, w_rot, lam, refine, eps, iterations,
+                work):
+    """The caller solves avatar i of the batch in place."""
     b = rows[i]
     iterations[b] = solve_analytic_one(
         parents, offsets[b], canon, pre, post, lo, hi, dofmask, pelvis, chains, lengths,
@@ -133,9 +134,9 @@ def solve_analytic_shared(control, rows, n, state, out_q, out_root, out_it, pare
         i, _ = _claim(control)
         if i < 0:
             break
-        _solve_here(i, seq, rows, state, parents, offsets, canon, pre, post, lo, hi,
-                    dofmask, pelvis, chains, lengths, targets, q, root, w_rot, lam,
-                    refine, eps, iterations, work)
+        _solve_here(i, rows, parents, offsets, canon, pre, post, lo, hi, dofmask, pelvis,
+                    chains, lengths, targets, q, root, w_rot, lam, refine, eps,
+                    iterations, work)
         atomic_store(state, i, mine)
         _count_done(control, seq)
     # wait for the avatars the helper holds; past TAKEOVER_SPINS, take them over: after
@@ -148,9 +149,9 @@ def solve_analytic_shared(control, rows, n, state, out_q, out_root, out_it, pare
             for i in range(n):
                 s = atomic_load(state, i)
                 if s != mine and s != theirs and atomic_cas(state, i, s, mine):
-                    _solve_here(i, seq, rows, state, parents, offsets, canon, pre,
-                                post, lo, hi, dofmask, pelvis, chains, lengths, targets,
-                                q, root, w_rot, lam, refine, eps, iterations, work)
+                    _solve_here(i, rows, parents, offsets, canon, pre, post, lo, hi,
+                                dofmask, pelvis, chains, lengths, targets, q, root, w_rot,
+                                lam, refine, eps, iterations, work)
             break
     helped = 0
     for i in range(n):
