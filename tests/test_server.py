@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import os
 from collections import deque
 from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
@@ -140,15 +141,23 @@ def test_solving_in_place_or_gathered_gives_the_same_poses(session: Session,
     np.testing.assert_array_equal(a_state.rotations, before)  # not a view of the state
 
 
-@pytest.mark.parametrize("busy", [False, True], ids=["idle", "busy-poll"])
+@pytest.mark.parametrize("busy,helper", [(False, False), (True, False), (True, True)],
+                         ids=["idle", "busy-poll", "busy-poll+helper"])
 def test_spectator_receives_the_offline_solution(session: Session, recording: ViveRecording,
-                                                 busy: bool) -> None:
+                                                 busy: bool, helper: bool) -> None:
     """Also with busy polling: between frames the server runs the latest frame's path on
-    a twin avatar (server.busy), and the avatar's own poses must not feel it."""
+    a twin avatar (server.busy), and the avatar's own poses must not feel it; and with
+    the solver helper thread on the core the server is not pinned to."""
     frames = 40
     received: list[AvatarBatch] = []
+    cores = os.sched_getaffinity(0)
+    if helper:
+        if len(cores) < 2:
+            pytest.skip("the solver helper needs a second core")
+        os.sched_setaffinity(0, {min(cores)})  # the server's core; the helper gets the rest
     if busy:
-        session = Session(session.rig, reconnect_grace=5.0, busy=True)
+        session = Session(session.rig, reconnect_grace=5.0, busy=True, helper=helper)
+        assert (session.avatars.helper() is not None) == helper
 
     async def test(url: str) -> None:
         async with joined(url, "spectator", "solo") as (spec, _), \
@@ -166,7 +175,10 @@ def test_spectator_receives_the_offline_solution(session: Session, recording: Vi
                 if busy:  # leave the server idle a moment: the twin's turn
                     await asyncio.sleep(0.002)
 
-    run(test, session)
+    try:
+        run(test, session)
+    finally:
+        os.sched_setaffinity(0, cores)
     if busy:
         assert session.busy is not None
         assert session.busy.warm.steps > frames  # it ran between the frames, on their data
