@@ -131,7 +131,7 @@ class AvatarSolver:
     def helper(self) -> SolveHelper | None:
         """The helper thread over the current arrays (started on first use), if any."""
         if self._helper is None and self.helper_cores:
-            self._helper = SolveHelper(self.helper_cores, self._shared_args(),
+            self._helper = SolveHelper(self.helper_cores, self._analytic_args(),
                                        len(self._roots), self.rig.skeleton.num_joints)
         return self._helper
 
@@ -141,8 +141,8 @@ class AvatarSolver:
             self._helper.stop()
             self._helper = None
 
-    def _shared_args(self) -> tuple[object, ...]:
-        return self.solver.shared_args(self._offsets, self._targets, self._rotations,
+    def _analytic_args(self) -> tuple[object, ...]:
+        return self.solver.analytic_args(self._offsets, self._targets, self._rotations,
                                        self._roots, self._iterations)
 
     def solve_staged(self, avatar_ids: list[int]) -> PoseBatch:

@@ -42,7 +42,7 @@ class SolveHelper:
 
     def __init__(self, cores: tuple[int, ...], args: tuple[object, ...], capacity: int,
                  joints: int) -> None:
-        """``args``: the solver's arguments over the whole arrays (``Solver.shared_args``)."""
+        """``args``: the solver's arguments over the whole arrays (``Solver.analytic_args``)."""
         self.cores = cores
         self.control = new_control()
         self.rows: NDArray[np.int64] = np.zeros(capacity, dtype=np.int64)

@@ -88,7 +88,7 @@ def test_an_avatar_the_helper_never_finishes_is_taken_over(session: Session,
     J = session.rig.skeleton.num_joints
     own = (np.zeros(N, dtype=np.int64), np.empty((N, J, 4)), np.empty((N, 3)),
            np.zeros(N, dtype=np.int64))
-    args = shared._shared_args()
+    args = shared._analytic_args()
     rows[:N] = np.arange(N)
     warm = new_control()
     warm[CLAIM] = 1 << FIELD  # a batch of one: compiled now, not while the batch runs
@@ -103,3 +103,4 @@ def test_an_avatar_the_helper_never_finishes_is_taken_over(session: Session,
     assert handed == 0  # ...never handed it over, and the caller solved all eight
     np.testing.assert_array_equal(shared._rotations[:N], expected.rotations)
     np.testing.assert_array_equal(shared._roots[:N], expected.root)
+

@@ -100,14 +100,14 @@ class Solver:
                                 else d.get("step_limit", 0.0))
         self.arrays: ChainArrays = chain_arrays(rig)
 
-    def shared_args(self, offsets: NDArray[np.float64], targets: NDArray[np.float64],
-                    rotations: NDArray[np.float64], root: NDArray[np.float64],
-                    iterations: NDArray[np.int64]) -> tuple[object, ...]:
-        """The analytic solver's arguments over whole arrays of avatars (offsets (B, J,
-        3), targets (B, 6, 7), rotations (B, J, 4), root (B, 3), iterations (B,)), as
-        ``solver.ik.shared`` takes them after its control and rows."""
+    def analytic_args(self, offsets: NDArray[np.float64], targets: NDArray[np.float64],
+                      rotations: NDArray[np.float64], root: NDArray[np.float64],
+                      iterations: NDArray[np.int64]) -> tuple[object, ...]:
+        """The analytic solver's arguments over arrays of avatars (offsets (B or 1, J, 3),
+        targets (B, 6, 7), rotations (B, J, 4), root (B, 3), iterations (B,)), as
+        ``solve_analytic_batch`` and ``solver.ik.shared`` take them."""
         if self.name != "analytic":
-            raise ValueError(f"only the analytic solver shares a batch, not {self.name}")
+            raise ValueError(f"not the analytic solver: {self.name}")
         a, o = self.arrays, self.options
         return (a.parents, offsets, a.canonical, a.pre, a.post, a.lo, a.hi, a.dofmask,
                 a.pelvis, a.chains, a.lengths, targets, rotations, root, o.rotation_weight,
@@ -123,11 +123,10 @@ class Solver:
         o = self.options
         serial = numba.get_num_threads() == 1  # see PARALLEL_MIN_AVATARS
         if self.name == "analytic":
-            solve_analytic_batch(a.parents, offsets, a.canonical, a.pre, a.post, a.lo, a.hi,
-                                 a.dofmask, a.pelvis, a.chains, a.lengths, targets,
-                                 state.rotations, state.root, o.rotation_weight,
-                                 self.damping, self.max_iterations, o.epsilon,
-                                 state.iterations, serial)
+            args = self.analytic_args(offsets, targets, state.rotations, state.root,
+                                      state.iterations)
+            # (mypy reads the compiled dispatcher's call as fixed-arity)
+            solve_analytic_batch(*args, serial)  # type: ignore[call-arg]
         elif self.name == "dls":
             solve_dls_batch(a.parents, offsets, a.pre, a.post, a.lo, a.hi, a.dofmask,
                             a.pelvis, a.chains, a.lengths, targets, state.rotations,
