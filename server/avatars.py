@@ -88,13 +88,16 @@ class AvatarSolver:
         free = next((s for s in range(len(self._roots)) if s not in used), None)
         if free is None:  # grow: double every array
             free = len(self._roots)
-            if self._helper is not None:  # it holds the arrays being replaced: a new one
-                self._helper.stop(wait=False)  # comes with the next solve
+            restart = self._helper is not None
+            if self._helper is not None:  # it holds the arrays being replaced
+                self._helper.stop(wait=False)
                 self._helper = None
             for name in ("_rotations", "_roots", "_offsets", "_mount_p", "_mount_q",
                          "_targets", "_iterations"):
                 a = getattr(self, name)
                 setattr(self, name, np.concatenate([a, np.empty_like(a)]))
+            if restart:  # here, as a player calibrates, not in the next frame's solve
+                self.helper()
         return free
 
     def calibrate(self, avatar_id: int, roles: tuple[str, ...], positions: Array,

@@ -104,3 +104,26 @@ def test_an_avatar_the_helper_never_finishes_is_taken_over(session: Session,
     np.testing.assert_array_equal(shared._rotations[:N], expected.rotations)
     np.testing.assert_array_equal(shared._roots[:N], expected.root)
 
+
+def test_the_helper_restarts_over_the_grown_arrays(session: Session,
+                                                   recording: ViveRecording) -> None:
+    """Arrays that grow (a player joins a full solver) get a new helper at once, over
+    the new arrays; the poses stay those of the server alone."""
+    everywhere = tuple(range(os.cpu_count() or 1))
+    helped = AvatarSolver(session.rig, capacity=2, helper_cores=everywhere)
+    alone = AvatarSolver(session.rig, capacity=2)
+    try:
+        first = helped.helper()
+        for solver in (helped, alone):
+            for a in range(3):  # the third grows the arrays
+                solver.calibrate(a, recording.devices, recording.positions[0],
+                                 recording.rotations[0])
+        assert helped.helper() is not None and helped.helper() is not first
+        for f in range(1, 10):
+            for solver in (helped, alone):
+                for a in range(3):
+                    solver.stage(a, recording.devices, poses(recording, f + 30 * a))
+            h, a_ = helped.solve_staged([0, 1, 2]), alone.solve_staged([0, 1, 2])
+            np.testing.assert_array_equal(h.rotations, a_.rotations)
+    finally:
+        helped.close()
