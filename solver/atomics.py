@@ -5,12 +5,15 @@ instruction; ``cpu_pause`` is the x86 spin-wait hint."""
 
 from __future__ import annotations
 
+import platform
 from typing import Any
 
 from llvmlite import ir
 from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
+
+X86 = platform.machine().lower() in ("x86_64", "amd64", "i386", "i686")
 
 
 def _element(context: Any, builder: Any, array_type: Any, array: Any, index: Any) -> Any:
@@ -36,14 +39,6 @@ def _atomic_store(typingctx: Any, array: Any, index: Any, value: Any) -> Any:
     return types.void(array, index, value), codegen
 
 
-def _atomic_add(typingctx: Any, array: Any, index: Any, value: Any) -> Any:
-    """array[index] += value; returns the value before."""
-    def codegen(context: Any, builder: Any, sig: Any, args: Any) -> Any:
-        ptr = _element(context, builder, sig.args[0], args[0], args[1])
-        return builder.atomic_rmw("add", ptr, args[2], "seq_cst")
-    return types.int64(array, index, value), codegen
-
-
 def _atomic_cas(typingctx: Any, array: Any, index: Any, expected: Any, new: Any) -> Any:
     """array[index] = new if it holds expected; True if it did."""
     def codegen(context: Any, builder: Any, sig: Any, args: Any) -> Any:
@@ -54,8 +49,11 @@ def _atomic_cas(typingctx: Any, array: Any, index: Any, expected: Any, new: Any)
 
 
 def _cpu_pause(typingctx: Any) -> Any:
-    """The spin-wait hint (x86 ``pause``): a spinning thread yields the core's pipeline."""
+    """The spin-wait hint (x86 ``pause``): a spinning thread yields the core's pipeline.
+    Nothing elsewhere (LLVM has no such intrinsic on other machines)."""
     def codegen(context: Any, builder: Any, sig: Any, args: Any) -> Any:
+        if not X86:
+            return context.get_dummy_value()
         fn = cgutils.get_or_insert_function(builder.module,
                                             ir.FunctionType(ir.VoidType(), []),
                                             "llvm.x86.sse2.pause")
@@ -67,6 +65,5 @@ def _cpu_pause(typingctx: Any) -> Any:
 # typed Any for mypy: an intrinsic's call signature is not its typing function's
 atomic_load: Any = intrinsic(_atomic_load)
 atomic_store: Any = intrinsic(_atomic_store)
-atomic_add: Any = intrinsic(_atomic_add)
 atomic_cas: Any = intrinsic(_atomic_cas)
 cpu_pause: Any = intrinsic(_cpu_pause)
