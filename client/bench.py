@@ -11,11 +11,11 @@ import time
 
 import numpy as np
 
-from client.builtin import builtin_motion_path
-from solver.fk import forward_kinematics
-from solver.ik import PoseBatch, Solver, SolverOptions
-from solver.readers.bvh import read_bvh
-from solver.rig import build_rig
+from posecast.client.builtin import builtin_motion_path
+from posecast.solver.fk import forward_kinematics
+from posecast.solver.ik import PoseBatch, Solver, SolverOptions
+from posecast.solver.readers.bvh import read_bvh
+from posecast.solver.rig import build_rig
 
 
 def bench_solver(name: str, batch_sizes: list[int], options: SolverOptions,

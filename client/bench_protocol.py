@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from protocol import (
+from posecast.protocol import (
     MAX_ANGLE_ERROR_DEG,
     dequantize_rotations,
     quantize_rotations,
     rotation_angle,
 )
-from protocol.measure import (
+from posecast.protocol.measure import (
     MAKEHUMAN_JOINTS,
     bytes_per_avatar_frame,
     time_avatar_batch,

@@ -11,10 +11,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from solver.ik import DEFAULT_SOLVER, SOLVERS, SolverOptions
+from posecast.solver.ik import DEFAULT_SOLVER, SOLVERS, SolverOptions
 
 if TYPE_CHECKING:
-    from client.player import Player, PlayerStats
+    from posecast.client.player import Player, PlayerStats
 
 
 def _positive_ints(text: str) -> list[int]:
@@ -139,7 +139,7 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     if args.command == "eval":
-        from client.eval_command import run_eval
+        from posecast.client.eval_command import run_eval
 
         return run_eval(args.files, args.solver, args.max_iterations, args.calibration,
                         args.smoothing, args.json)
@@ -152,27 +152,27 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "view":
         return _view(args)
     if args.command == "bench" and args.bench == "solver":
-        from client.bench import bench_solver, format_solver_table
+        from posecast.client.bench import bench_solver, format_solver_table
 
         result = bench_solver(args.solver, args.avatars,
                               SolverOptions(max_iterations=args.max_iterations), args.seconds)
         print(json.dumps(result) if args.json else format_solver_table(result))
         return 0
     if args.command == "bench" and args.bench == "protocol":
-        from client.bench_protocol import bench_protocol, format_protocol_table
+        from posecast.client.bench_protocol import bench_protocol, format_protocol_table
 
         doc = bench_protocol()
         print(json.dumps(doc) if args.json else format_protocol_table(doc))
         return 0
     if args.command == "bench" and args.bench == "render":
-        from client.viewer.bench import bench_render, format_render_table
+        from posecast.client.viewer.bench import bench_render, format_render_table
 
         width, height = _size(args.size)
         result = bench_render(args.avatars, width, height, args.frames, out=args.out)
         print(json.dumps(result) if args.json else format_render_table(result))
         return 0
     if args.command == "bench" and args.bench == "server":
-        from client.bench_server import bench_server, format_server_table
+        from posecast.client.bench_server import bench_server, format_server_table
 
         result = bench_server(args.counts, args.seconds,
                               helper=None if args.helper else False)
@@ -194,8 +194,8 @@ def _size(text: str) -> tuple[int, int]:
 def _view(args: argparse.Namespace) -> int:
     import asyncio
 
-    from client.connection import SessionError
-    from client.viewer import (
+    from posecast.client.connection import SessionError
+    from posecast.client.viewer import (
         GLUnavailableError,
         Mode,
         NoDisplayError,
@@ -235,7 +235,7 @@ def _serve(args: argparse.Namespace) -> int:
     import asyncio
     import logging
 
-    from server.app import Session, install_fast_loop, run_server
+    from posecast.server.app import Session, install_fast_loop, run_server
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     install_fast_loop()
@@ -252,11 +252,11 @@ def _serve(args: argparse.Namespace) -> int:
 def _play(args: argparse.Namespace) -> int:
     import asyncio
 
-    from client.connection import SessionError
-    from client.player import Player
-    from client.sources import open_source
-    from client.sources.base import SourceError
-    from solver.readers.errors import FormatError
+    from posecast.client.connection import SessionError
+    from posecast.client.player import Player
+    from posecast.client.sources import open_source
+    from posecast.client.sources.base import SourceError
+    from posecast.solver.readers.errors import FormatError
 
     try:
         source = open_source(args.source, args.devices, loop=args.loop)
@@ -301,8 +301,8 @@ async def _play_live(player: Player, delay: float, seconds: float | None) -> Pla
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from client.demo import run_demo
-    from client.latency import format_latency_table
+    from posecast.client.demo import run_demo
+    from posecast.client.latency import format_latency_table
 
     if args.players < 0 or args.spectators < 0 or args.seconds <= 0:
         return _fail("demo", "players and spectators must be >= 0 and seconds > 0")

@@ -30,8 +30,8 @@ from websockets.exceptions import (
 )
 from websockets.protocol import State
 
-from client.sources.base import now
-from protocol import (
+from posecast.client.sources.base import now
+from posecast.protocol import (
     MAX_MESSAGE_BYTES,
     PROTOCOL_VERSION,
     ClientMessage,
@@ -47,8 +47,8 @@ from protocol import (
     decode,
     encode,
 )
-from protocol.arrivals import ArrivalStamps, arrival_time
-from protocol.validation import protocol_error
+from posecast.protocol.arrivals import ArrivalStamps, arrival_time
+from posecast.protocol.validation import protocol_error
 
 # unsent bytes beyond which a player's frames are dropped rather than queued: ~20 frames
 SEND_BUFFER_LIMIT = 16 * 1024

@@ -18,13 +18,13 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any, TypeVar
 
-from client.builtin import builtin_motion_path
-from client.latency import LatencyRecorder
-from client.player import PlayerStats, Ticker, run_player
-from client.sources.bvh_source import BvhSource
-from client.spectator import SpectatorStats, run_spectator
-from client.viewer.headless import HeadlessViewerProcess
-from client.viewer.interpolation import Mode
+from posecast.client.builtin import builtin_motion_path
+from posecast.client.latency import LatencyRecorder
+from posecast.client.player import PlayerStats, Ticker, run_player
+from posecast.client.sources.bvh_source import BvhSource
+from posecast.client.spectator import SpectatorStats, run_spectator
+from posecast.client.viewer.headless import HeadlessViewerProcess
+from posecast.client.viewer.interpolation import Mode
 
 ROOM = "demo"
 T = TypeVar("T")
@@ -86,7 +86,7 @@ def pin_to_cores(role: str, cores: Cores) -> None:
 def _serve_process(pipe: Connection, solver: str, cores: Cores, busy: bool,
                    helper: bool | None) -> None:
     """The server process: report the port, serve until told to stop, report metrics."""
-    from server.app import Session, install_fast_loop, run_server
+    from posecast.server.app import Session, install_fast_loop, run_server
 
     pin_to_cores("server", cores)
     install_fast_loop()
@@ -246,7 +246,7 @@ def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
 
 def _run(coro: Coroutine[Any, Any, T]) -> T:
     """The clients' event loop: uvloop when installed."""
-    from server.app import install_fast_loop
+    from posecast.server.app import install_fast_loop
 
     install_fast_loop()
     return asyncio.run(coro)

@@ -9,13 +9,19 @@ import json
 import sys
 from pathlib import Path
 
-from client.builtin import builtin_motion_path
-from client.progress import ProgressBar
-from solver.evaluation import ClipResult, EvalOptions, evaluate_bvh, evaluate_vive, summarize
-from solver.ik import SolverOptions
-from solver.readers.bvh import read_bvh
-from solver.readers.errors import FormatError
-from solver.readers.vive import read_vive
+from posecast.client.builtin import builtin_motion_path
+from posecast.client.progress import ProgressBar
+from posecast.solver.evaluation import (
+    ClipResult,
+    EvalOptions,
+    evaluate_bvh,
+    evaluate_vive,
+    summarize,
+)
+from posecast.solver.ik import SolverOptions
+from posecast.solver.readers.bvh import read_bvh
+from posecast.solver.readers.errors import FormatError
+from posecast.solver.readers.vive import read_vive
 
 
 def evaluate_file(path: Path, options: EvalOptions, progress: ProgressBar | None) -> ClipResult:

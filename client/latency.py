@@ -17,7 +17,7 @@ from collections.abc import Iterable, Mapping
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from protocol.batch import stage_latencies
+from posecast.protocol.batch import stage_latencies
 
 # the order stages are listed in: along the way a pose travels
 STAGE_ORDER = ("capture_to_server", "solve", "server", "network_to_spectator",

@@ -21,9 +21,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import cast
 
-from client.connection import Session, SessionError, make_hello, open_session, stop_task
-from client.sources.base import DeviceSample, PoseSource, now
-from protocol import (
+from posecast.client.connection import Session, SessionError, make_hello, open_session, stop_task
+from posecast.client.sources.base import DeviceSample, PoseSource, now
+from posecast.protocol import (
     Calibrate,
     DeviceRole,
     Error,

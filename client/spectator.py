@@ -17,10 +17,10 @@ from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
-from client.connection import Session, make_hello, open_session, stop_task
-from client.latency import LatencyRecorder
-from client.sources.base import now
-from protocol import (
+from posecast.client.connection import Session, make_hello, open_session, stop_task
+from posecast.client.latency import LatencyRecorder
+from posecast.client.sources.base import now
+from posecast.protocol import (
     AvatarBatch,
     AvatarFrame,
     AvatarInfo,

@@ -12,10 +12,10 @@ validated messages and back; server/ and client/ own the sockets. Modules:
 - ``measure``: bytes per avatar frame and decode timings, for bench commands
 """
 
-from protocol.clock import ClockEstimator, ClockSample, clock_sample
-from protocol.codec import decode, decode_client, encode, encode_tracker_frame
-from protocol.errors import ErrorCode, ProtocolError
-from protocol.messages import (
+from posecast.protocol.clock import ClockEstimator, ClockSample, clock_sample
+from posecast.protocol.codec import decode, decode_client, encode, encode_tracker_frame
+from posecast.protocol.errors import ErrorCode, ProtocolError
+from posecast.protocol.messages import (
     CLIENT_MESSAGES,
     MESSAGE_TYPES,
     PROTOCOL_VERSION,
@@ -37,15 +37,15 @@ from protocol.messages import (
     TrackerFrame,
     Welcome,
 )
-from protocol.quantize import (
+from posecast.protocol.quantize import (
     BYTES_PER_ROTATION,
     MAX_ANGLE_ERROR_DEG,
     dequantize_rotations,
     quantize_rotations,
     rotation_angle,
 )
-from protocol.roles import CALIBRATION_ROLES, DEVICE_ROLES, DeviceRole
-from protocol.validation import MAX_CLIENT_MESSAGE_BYTES, MAX_JOINTS, MAX_MESSAGE_BYTES
+from posecast.protocol.roles import CALIBRATION_ROLES, DEVICE_ROLES, DeviceRole
+from posecast.protocol.validation import MAX_CLIENT_MESSAGE_BYTES, MAX_JOINTS, MAX_MESSAGE_BYTES
 
 __all__ = [
     "BYTES_PER_ROTATION", "CALIBRATION_ROLES", "CLIENT_MESSAGES", "DEVICE_ROLES",

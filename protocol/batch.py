@@ -18,9 +18,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import ValidationInfo, field_validator, model_serializer
 
-from protocol.model import Model, first_duplicate
-from protocol.quantize import dequantize_rotations, quantize_rotations
-from protocol.validation import (
+from posecast.protocol.model import Model, first_duplicate
+from posecast.protocol.quantize import dequantize_rotations, quantize_rotations
+from posecast.protocol.validation import (
     MAX_AVATARS,
     MAX_JOINTS,
     Int,

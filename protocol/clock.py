@@ -16,7 +16,7 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
-from protocol.messages import Pong
+from posecast.protocol.messages import Pong
 
 
 @dataclass(frozen=True)

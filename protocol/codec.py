@@ -17,9 +17,9 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ValidationError
 
-from protocol.batch import AvatarBatch, avatar_batch_from_wire, avatar_batch_wire
-from protocol.errors import ErrorCode, ProtocolError
-from protocol.messages import (
+from posecast.protocol.batch import AvatarBatch, avatar_batch_from_wire, avatar_batch_wire
+from posecast.protocol.errors import ErrorCode, ProtocolError
+from posecast.protocol.messages import (
     CLIENT_MESSAGES,
     MESSAGE_TYPES,
     ClientMessage,
@@ -28,7 +28,7 @@ from protocol.messages import (
     TrackerPoses,
     tracker_poses_from_wire,
 )
-from protocol.validation import (
+from posecast.protocol.validation import (
     MAX_CLIENT_MESSAGE_BYTES,
     MAX_MESSAGE_BYTES,
     checked_poses,

@@ -14,15 +14,15 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol.codec import (
+from posecast.protocol.codec import (
     decode,
     decode_client,
     decode_tracker_poses,
     encode,
     encode_avatar_batch,
 )
-from protocol.messages import AvatarBatch, TrackerFrame
-from protocol.roles import DEVICE_ROLES, DeviceRole
+from posecast.protocol.messages import AvatarBatch, TrackerFrame
+from posecast.protocol.roles import DEVICE_ROLES, DeviceRole
 
 # The MakeHuman rig the project ships (solver/assets) has 53 joints; DESIGN calls it "60+".
 MAKEHUMAN_JOINTS = 53

@@ -39,10 +39,10 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
-from protocol.batch import AvatarBatch, AvatarFrame
-from protocol.model import Model, first_duplicate
-from protocol.roles import CALIBRATION_ROLES, DEVICE_ROLES, DeviceRole
-from protocol.validation import (
+from posecast.protocol.batch import AvatarBatch, AvatarFrame
+from posecast.protocol.model import Model, first_duplicate
+from posecast.protocol.roles import CALIBRATION_ROLES, DEVICE_ROLES, DeviceRole
+from posecast.protocol.validation import (
     MAX_AVATARS,
     MAX_INT,
     MAX_JOINTS,

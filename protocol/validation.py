@@ -18,8 +18,8 @@ from numba import njit, types
 from numpy.typing import NDArray
 from pydantic import AfterValidator, Field, Strict, ValidationError, ValidationInfo
 
-from protocol.errors import ErrorCode, ProtocolError
-from protocol.quantize import BYTES_PER_ROTATION
+from posecast.protocol.errors import ErrorCode, ProtocolError
+from posecast.protocol.quantize import BYTES_PER_ROTATION
 
 A = TypeVar("A", bound=NDArray[Any])
 

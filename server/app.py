@@ -21,7 +21,7 @@ import numba
 from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 
-from protocol import (
+from posecast.protocol import (
     PROTOCOL_VERSION,
     Calibrate,
     Error,
@@ -36,17 +36,17 @@ from protocol import (
     decode_client,
     encode,
 )
-from protocol.arrivals import ArrivalStamps, arrival_time
-from protocol.codec import decode_tracker_poses
-from server.avatars import AvatarSolver
-from server.busy import BusyPoll
-from server.clock import now
-from server.helper import spare_cores
-from server.metrics import Metrics
-from server.outbox import Outbox
-from server.room import Avatar, Delivery, Room, Spectator, send_deliveries
-from solver.readers.gltf import load_makehuman
-from solver.rig import Rig, build_rig
+from posecast.protocol.arrivals import ArrivalStamps, arrival_time
+from posecast.protocol.codec import decode_tracker_poses
+from posecast.server.avatars import AvatarSolver
+from posecast.server.busy import BusyPoll
+from posecast.server.clock import now
+from posecast.server.helper import spare_cores
+from posecast.server.metrics import Metrics
+from posecast.server.outbox import Outbox
+from posecast.server.room import Avatar, Delivery, Room, Spectator, send_deliveries
+from posecast.solver.readers.gltf import load_makehuman
+from posecast.solver.rig import Rig, build_rig
 
 log = logging.getLogger("posecast.server")
 

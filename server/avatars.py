@@ -14,13 +14,13 @@ import functools
 import numpy as np
 from numpy.typing import NDArray
 
-from server.helper import SolveHelper
-from solver.calibration import EFFECTOR_DEVICES, Calibration, calibrate
-from solver.fk import forward_kinematics
-from solver.ik import PoseBatch, Solver
-from solver.ik.shared import solve_analytic_shared
-from solver.kernels import bone_targets
-from solver.rig import EFFECTORS, Rig
+from posecast.server.helper import SolveHelper
+from posecast.solver.calibration import EFFECTOR_DEVICES, Calibration, calibrate
+from posecast.solver.fk import forward_kinematics
+from posecast.solver.ik import PoseBatch, Solver
+from posecast.solver.ik.shared import solve_analytic_shared
+from posecast.solver.kernels import bone_targets
+from posecast.solver.rig import EFFECTORS, Rig
 
 Array = NDArray[np.float64]
 

@@ -22,11 +22,11 @@ import time
 
 import numpy as np
 
-from protocol.codec import decode_tracker_poses, encode_avatar_batch
-from protocol.messages import TrackerPoses
-from server.avatars import AvatarSolver
-from solver.ik import PoseBatch
-from solver.rig import Rig
+from posecast.protocol.codec import decode_tracker_poses, encode_avatar_batch
+from posecast.protocol.messages import TrackerPoses
+from posecast.server.avatars import AvatarSolver
+from posecast.solver.ik import PoseBatch
+from posecast.solver.rig import Rig
 
 log = logging.getLogger("posecast.server")
 

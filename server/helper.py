@@ -21,7 +21,7 @@ import time
 import numpy as np
 from numpy.typing import NDArray
 
-from solver.ik.shared import READY, STOP, analytic_helper, new_control
+from posecast.solver.ik.shared import READY, STOP, analytic_helper, new_control
 
 log = logging.getLogger("posecast.server")
 

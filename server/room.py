@@ -22,17 +22,24 @@ from dataclasses import dataclass, field
 import numpy as np
 from websockets.asyncio.server import ServerConnection, broadcast
 
-from protocol import AvatarBatch, AvatarFrame, AvatarInfo, AvatarRoster, TrackerFrame, encode
-from protocol.arrivals import ArrivalStamps
-from protocol.codec import encode_avatar_batch
-from protocol.messages import TrackerPoses
-from server.avatars import AvatarSolver
-from server.busy import OpenBursts
-from server.cadence import Cadence
-from server.clock import now
-from server.metrics import Metrics
-from server.outbox import Outbox
-from solver.calibration import Calibration
+from posecast.protocol import (
+    AvatarBatch,
+    AvatarFrame,
+    AvatarInfo,
+    AvatarRoster,
+    TrackerFrame,
+    encode,
+)
+from posecast.protocol.arrivals import ArrivalStamps
+from posecast.protocol.codec import encode_avatar_batch
+from posecast.protocol.messages import TrackerPoses
+from posecast.server.avatars import AvatarSolver
+from posecast.server.busy import OpenBursts
+from posecast.server.cadence import Cadence
+from posecast.server.clock import now
+from posecast.server.metrics import Metrics
+from posecast.server.outbox import Outbox
+from posecast.solver.calibration import Calibration
 
 
 class SharedBatch:

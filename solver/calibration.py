@@ -24,10 +24,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from solver import rotations as R
-from solver.kernels import bone_targets
-from solver.motion import DRIVING_DEVICES
-from solver.rig import EFFECTORS, Rig, global_pose
+from posecast.solver import rotations as R
+from posecast.solver.kernels import bone_targets
+from posecast.solver.motion import DRIVING_DEVICES
+from posecast.solver.rig import EFFECTORS, Rig, global_pose
 
 # device -> the bone (role) it is mounted on. A forearm tracker is strapped to the
 # forearm, whatever the template's elbow says: in the recordings it keeps its distance to

@@ -21,21 +21,21 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from solver.calibration import calibrate
-from solver.fk import forward_kinematics
-from solver.ik import PoseBatch, Solver, SolverOptions
-from solver.metrics import lag_frames, position_error_mm, rotation_error_deg
-from solver.motion import (
+from posecast.solver.calibration import calibrate
+from posecast.solver.fk import forward_kinematics
+from posecast.solver.ik import PoseBatch, Solver, SolverOptions
+from posecast.solver.metrics import lag_frames, position_error_mm, rotation_error_deg
+from posecast.solver.motion import (
     DRIVING_DEVICES,
     HELDOUT_DEVICES,
     Motion,
     ViveRecording,
     drop_static_root,
 )
-from solver.naming import roles as role_map
-from solver.readers.gltf import load_makehuman
-from solver.rig import Rig, build_rig
-from solver.smoothing import SlerpSmoother
+from posecast.solver.naming import roles as role_map
+from posecast.solver.readers.gltf import load_makehuman
+from posecast.solver.rig import Rig, build_rig
+from posecast.solver.smoothing import SlerpSmoother
 
 Progress = Callable[[int, int], None]
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from solver.kernels import fk_batch
-from solver.skeleton import Skeleton
+from posecast.solver.kernels import fk_batch
+from posecast.solver.skeleton import Skeleton
 
 
 def forward_kinematics(skeleton: Skeleton, rotations: NDArray[np.float64],

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from solver import rotations as R
+from posecast.solver import rotations as R
 
 
 def position_error_mm(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:

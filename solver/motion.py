@@ -8,8 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from solver import rotations as R
-from solver.skeleton import Skeleton
+from posecast.solver import rotations as R
+from posecast.solver.skeleton import Skeleton
 
 # Vive device names, as DESIGN.md's eval contract spells them
 VIVE_DEVICES = ("head", "hip", "left_hand", "right_hand", "left_forearm", "right_forearm",

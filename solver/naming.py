@@ -10,7 +10,7 @@ held fixed by the solvers.
 
 from __future__ import annotations
 
-from solver.skeleton import Skeleton, SkeletonError
+from posecast.solver.skeleton import Skeleton, SkeletonError
 
 CHAIN_ROLES = ("spine", "neck")  # one or more joints each, root-most first
 

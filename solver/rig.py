@@ -22,11 +22,11 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from solver import rotations as R
-from solver.fk import forward_kinematics
-from solver.limits import spec_for
-from solver.naming import roles as role_map
-from solver.skeleton import Skeleton, SkeletonError
+from posecast.solver import rotations as R
+from posecast.solver.fk import forward_kinematics
+from posecast.solver.limits import spec_for
+from posecast.solver.naming import roles as role_map
+from posecast.solver.skeleton import Skeleton, SkeletonError
 
 # The six driven bones, in the order of every targets array: (B, 6, 7) = pos + quat
 EFFECTORS = ("head", "pelvis", "hand_l", "hand_r", "foot_l", "foot_r")

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from solver import rotations as R
+from posecast.solver import rotations as R
 
 
 class SlerpSmoother:

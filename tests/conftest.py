@@ -14,9 +14,9 @@ from pathlib import Path
 
 import pytest
 
-from server.app import Session, run_server
-from solver.motion import ViveRecording
-from solver.readers.vive import read_vive
+from posecast.server.app import Session, run_server
+from posecast.solver.motion import ViveRecording
+from posecast.solver.readers.vive import read_vive
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 SHARED_DATA = REPO_ROOT.parent / "shared" / "data"

@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from client.cli import main
+from posecast.client.cli import main
 
 
 def test_bench_solver_json(capsys: pytest.CaptureFixture[str]) -> None:

@@ -15,14 +15,14 @@ import numpy as np
 import pytest
 import uvloop
 
-from client.builtin import builtin_motion_path
-from client.connection import SessionError, open_session
-from client.latency import LatencyRecorder, format_latency_table
-from client.player import Ticker, calibrate_message, tracker_frame
-from client.sources.base import DeviceSample
-from client.sources.bvh_source import BvhSource
-from client.spectator import Spectator
-from protocol import (
+from posecast.client.builtin import builtin_motion_path
+from posecast.client.connection import SessionError, open_session
+from posecast.client.latency import LatencyRecorder, format_latency_table
+from posecast.client.player import Ticker, calibrate_message, tracker_frame
+from posecast.client.sources.base import DeviceSample
+from posecast.client.sources.bvh_source import BvhSource
+from posecast.client.spectator import Spectator
+from posecast.protocol import (
     PROTOCOL_VERSION,
     AvatarBatch,
     AvatarFrame,

@@ -7,7 +7,7 @@ import os
 
 import pytest
 
-from client.cli import main
+from posecast.client.cli import main
 
 
 def test_demo_delivers_every_solved_frame_to_every_spectator(

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from client.builtin import builtin_motion_path
-from client.cli import main
+from posecast.client.builtin import builtin_motion_path
+from posecast.client.cli import main
 
 CLIP_KEYS = {"file", "kind", "frames", "position_error_mm", "mean_error_mm",
              "heldout_error_mm", "rotation_error_deg", "solve_us_p50", "lag_ms"}
@@ -113,7 +113,7 @@ def test_bad_file_gives_one_line_with_file_and_line(kind: str, tmp_path: Path,
 
 def test_bad_file_through_the_real_command(tmp_path: Path) -> None:
     bad = _malformed_bvh(tmp_path)
-    proc = subprocess.run([sys.executable, "-m", "client.cli", "eval", str(bad), "--json"],
+    proc = subprocess.run([sys.executable, "-m", "posecast.client.cli", "eval", str(bad), "--json"],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 1
     assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr

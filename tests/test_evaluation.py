@@ -8,12 +8,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from solver import rotations as R
-from solver.evaluation import evaluate_bvh
-from solver.fk import forward_kinematics
-from solver.motion import Motion, drop_static_root
-from solver.readers.bvh import read_bvh
-from solver.skeleton import Skeleton
+from posecast.solver import rotations as R
+from posecast.solver.evaluation import evaluate_bvh
+from posecast.solver.fk import forward_kinematics
+from posecast.solver.motion import Motion, drop_static_root
+from posecast.solver.readers.bvh import read_bvh
+from posecast.solver.skeleton import Skeleton
 
 SharedData = Callable[[str], Path]
 
@@ -76,9 +76,9 @@ def test_bvh_eval_follows_a_body_that_travels(shared_data: SharedData, name: str
 def test_a_knee_tracker_rides_a_share_of_the_knee_bend() -> None:
     """Its position turns about the knee by KNEE_BEND_SHARE of the knee's flexion away
     from the straight leg; its rotation stays the thigh's."""
-    from solver.calibration import KNEE_BEND_SHARE, Calibration, Mount, _partly_bent
-    from solver.readers.gltf import load_makehuman
-    from solver.rig import build_rig, global_pose
+    from posecast.solver.calibration import KNEE_BEND_SHARE, Calibration, Mount, _partly_bent
+    from posecast.solver.readers.gltf import load_makehuman
+    from posecast.solver.rig import build_rig, global_pose
 
     rig = build_rig(load_makehuman().skeleton)
     knee = rig.role("shin_l")
@@ -113,14 +113,14 @@ def test_a_knee_tracker_rides_a_share_of_the_knee_bend() -> None:
 def test_a_knee_tracker_turns_out_as_the_knee_bends() -> None:
     """About the hip-ankle line, outwards for its side, KNEE_TURN_OUT once the knee is
     bent KNEE_TURN_FULL_BEND or more, in proportion below; a straight knee not at all."""
-    from solver.calibration import (
+    from posecast.solver.calibration import (
         KNEE_TURN_FULL_BEND,
         KNEE_TURN_OUT,
         Calibration,
         Mount,
     )
-    from solver.readers.gltf import load_makehuman
-    from solver.rig import build_rig, global_pose
+    from posecast.solver.readers.gltf import load_makehuman
+    from posecast.solver.rig import build_rig, global_pose
 
     rig = build_rig(load_makehuman().skeleton)
     offset = np.array([0.0, 0.09, 0.05])
@@ -150,9 +150,9 @@ def test_a_knee_tracker_turns_out_as_the_knee_bends() -> None:
 
 
 def test_a_forearm_tracker_follows_a_share_of_the_forearm_twist() -> None:
-    from solver.calibration import _partly_twisted
-    from solver.readers.gltf import load_makehuman
-    from solver.rig import build_rig, global_pose
+    from posecast.solver.calibration import _partly_twisted
+    from posecast.solver.readers.gltf import load_makehuman
+    from posecast.solver.rig import build_rig, global_pose
 
     rig = build_rig(load_makehuman().skeleton)
     j = rig.role("forearm_l")

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from solver import naming, rotations
-from solver.readers.errors import FormatError
-from solver.readers.gltf import SkinnedMesh, load_makehuman, makehuman_path, read_gltf
-from solver.skeleton import Skeleton
+from posecast.solver import naming, rotations
+from posecast.solver.readers.errors import FormatError
+from posecast.solver.readers.gltf import SkinnedMesh, load_makehuman, makehuman_path, read_gltf
+from posecast.solver.skeleton import Skeleton
 
 
 @pytest.fixture(scope="module")

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from solver.kernels import clamped, clamped_exactly, composed, surely_within, swing_twist
-from solver.readers.gltf import load_makehuman
-from solver.rig import build_rig
+from posecast.solver.kernels import clamped, clamped_exactly, composed, surely_within, swing_twist
+from posecast.solver.readers.gltf import load_makehuman
+from posecast.solver.rig import build_rig
 
 
 def test_the_clamp_shortcut_only_skips_joints_the_exact_test_leaves_alone() -> None:

@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from numpy.typing import NDArray
 from pydantic import BaseModel, ValidationError
 
-from protocol import (
+from posecast.protocol import (
     CALIBRATION_ROLES,
     DEVICE_ROLES,
     MAX_ANGLE_ERROR_DEG,
@@ -41,17 +41,17 @@ from protocol import (
     encode,
     rotation_angle,
 )
-from protocol.batch import avatar_batch_from_wire
-from protocol.codec import decode_tracker_poses
-from protocol.measure import sample_avatar_batch, sample_tracker_frame
-from protocol.messages import tracker_poses_from_wire
-from protocol.validation import (
+from posecast.protocol.batch import avatar_batch_from_wire
+from posecast.protocol.codec import decode_tracker_poses
+from posecast.protocol.measure import sample_avatar_batch, sample_tracker_frame
+from posecast.protocol.messages import tracker_poses_from_wire
+from posecast.protocol.validation import (
     MAX_AVATARS,
     MAX_POSITION_M,
     QUAT_NORM_TOLERANCE,
     device_poses,
 )
-from solver.motion import DRIVING_DEVICES, VIVE_DEVICES
+from posecast.solver.motion import DRIVING_DEVICES, VIVE_DEVICES
 
 RNG = np.random.default_rng(7)
 
@@ -160,7 +160,7 @@ def test_calibrate_round_trips() -> None:
 
 
 def test_roster_round_trips_the_real_makehuman_skeleton() -> None:
-    from solver.readers.gltf import load_makehuman
+    from posecast.solver.readers.gltf import load_makehuman
 
     skeleton = load_makehuman().skeleton
     info = AvatarInfo(avatar_id=1, display_name="Ada", joint_names=skeleton.names,
@@ -686,7 +686,7 @@ def test_corrupted_messages_raise_only_protocol_errors(good: bytes, data: st.Dat
 
 
 def test_direct_batch_encoder_gives_the_model_bytes() -> None:
-    from protocol.codec import encode_avatar_batch
+    from posecast.protocol.codec import encode_avatar_batch
     rng = np.random.default_rng(3)
     q = rng.normal(size=(5, 53, 4))
     q /= np.linalg.norm(q, axis=-1, keepdims=True)

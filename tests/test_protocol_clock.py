@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from protocol import ClockEstimator, Pong, clock_sample
+from posecast.protocol import ClockEstimator, Pong, clock_sample
 
 TRUE_OFFSET = 1234.567891  # server clock - client clock, seconds
 

@@ -6,8 +6,8 @@ import time
 
 import pytest
 
-from protocol import BYTES_PER_ROTATION
-from protocol.measure import (
+from posecast.protocol import BYTES_PER_ROTATION
+from posecast.protocol.measure import (
     MAKEHUMAN_JOINTS,
     bytes_per_avatar_frame,
     time_calls,
@@ -22,7 +22,7 @@ FRAME_OVERHEAD = 16 + 12 + 2 + 24
 
 
 def test_makehuman_joint_count_matches_the_shipped_rig() -> None:
-    from solver.readers.gltf import load_makehuman
+    from posecast.solver.readers.gltf import load_makehuman
 
     assert load_makehuman().skeleton.num_joints == MAKEHUMAN_JOINTS == 53
 

@@ -16,7 +16,7 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from numpy.typing import NDArray
 
-from protocol.quantize import (
+from posecast.protocol.quantize import (
     BYTES_PER_ROTATION,
     MAX_ANGLE_ERROR_DEG,
     MAX_ANGLE_ERROR_RAD,

@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from solver import naming
-from solver import rotations as rot
-from solver.motion import Motion
-from solver.readers.bvh import CMU_UNIT, read_bvh
-from solver.readers.errors import FormatError
-from solver.readers.vive import read_vive
+from posecast.solver import naming
+from posecast.solver import rotations as rot
+from posecast.solver.motion import Motion
+from posecast.solver.readers.bvh import CMU_UNIT, read_bvh
+from posecast.solver.readers.errors import FormatError
+from posecast.solver.readers.vive import read_vive
 
 SharedData = Callable[[str], Path]
 

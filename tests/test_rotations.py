@@ -14,7 +14,7 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from solver import rotations as rot
+from posecast.solver import rotations as rot
 
 SETTINGS = settings(max_examples=200, deadline=None)
 # batch tests check up to 6 elements per example, so fewer examples cover as many rotations

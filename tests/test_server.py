@@ -17,8 +17,8 @@ import pytest
 from conftest import serving
 from websockets.asyncio.client import ClientConnection, connect
 
-from client.connection import SEND_BUFFER_LIMIT, make_hello, open_session
-from protocol import (
+from posecast.client.connection import SEND_BUFFER_LIMIT, make_hello, open_session
+from posecast.protocol import (
     PROTOCOL_VERSION,
     AvatarBatch,
     AvatarRoster,
@@ -34,15 +34,15 @@ from protocol import (
     quantize_rotations,
     rotation_angle,
 )
-from server.app import Session
-from server.avatars import AvatarSolver
-from server.clock import now
-from server.metrics import Metrics
-from server.outbox import Outbox
-from server.room import Avatar, Room
-from solver.calibration import calibrate
-from solver.ik import PoseBatch, Solver
-from solver.motion import ViveRecording
+from posecast.server.app import Session
+from posecast.server.avatars import AvatarSolver
+from posecast.server.clock import now
+from posecast.server.metrics import Metrics
+from posecast.server.outbox import Outbox
+from posecast.server.room import Avatar, Room
+from posecast.solver.calibration import calibrate
+from posecast.solver.ik import PoseBatch, Solver
+from posecast.solver.motion import ViveRecording
 
 TIMEOUT = 5.0
 
@@ -421,7 +421,7 @@ def test_spectator_rate_limit() -> None:
 
 
 def test_shared_batch_is_encoded_once_and_parts_match_it() -> None:
-    from server.room import SharedBatch
+    from posecast.server.room import SharedBatch
     rotations = np.tile([0.0, 0.0, 0.0, 1.0], (2, 3, 1))
     shared = SharedBatch([7, 9], [1, 2], np.zeros((2, 3)), rotations, [0.5, 0.6],
                          [1.0, 1.1], 1.2)
@@ -447,7 +447,7 @@ def test_serve_shuts_down_cleanly_on_sigterm(tmp_path: Path) -> None:
     with socket.socket() as s:  # a free port
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    proc = subprocess.Popen([sys.executable, "-m", "client.cli", "serve", "--port",
+    proc = subprocess.Popen([sys.executable, "-m", "posecast.client.cli", "serve", "--port",
                              str(port)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True)
     try:

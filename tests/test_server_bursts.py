@@ -8,14 +8,14 @@ import asyncio
 import numpy as np
 import pytest
 
-from protocol import Calibrate, TrackerFrame, decode_client, encode
-from server.app import Session
-from server.avatars import AvatarSolver
-from server.busy import OpenBursts, WarmPath
-from server.cadence import MAX_PERIOD_S, Cadence
-from server.metrics import Metrics
-from server.room import Avatar, Room
-from solver.motion import ViveRecording
+from posecast.protocol import Calibrate, TrackerFrame, decode_client, encode
+from posecast.server.app import Session
+from posecast.server.avatars import AvatarSolver
+from posecast.server.busy import OpenBursts, WarmPath
+from posecast.server.cadence import MAX_PERIOD_S, Cadence
+from posecast.server.metrics import Metrics
+from posecast.server.room import Avatar, Room
+from posecast.solver.motion import ViveRecording
 
 PERIOD = 1 / 90
 

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from numba import njit
 
-from server.app import Session
-from server.avatars import AvatarSolver
-from solver.atomics import atomic_load
-from solver.ik.shared import (
+from posecast.server.app import Session
+from posecast.server.avatars import AvatarSolver
+from posecast.solver.atomics import atomic_load
+from posecast.solver.ik.shared import (
     CLAIM,
     FIELD,
     MAX_BATCH,
@@ -23,7 +23,7 @@ from solver.ik.shared import (
     new_control,
     solve_analytic_shared,
 )
-from solver.motion import ViveRecording
+from posecast.solver.motion import ViveRecording
 
 N = 8
 

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from solver import rotations as R
-from solver.fk import forward_kinematics
-from solver.ik import SOLVERS, PoseBatch, Solver, SolverOptions
-from solver.kernels import composed
-from solver.readers.gltf import load_makehuman
-from solver.rig import Rig, build_rig, global_pose, within_limits
+from posecast.solver import rotations as R
+from posecast.solver.fk import forward_kinematics
+from posecast.solver.ik import SOLVERS, PoseBatch, Solver, SolverOptions
+from posecast.solver.kernels import composed
+from posecast.solver.readers.gltf import load_makehuman
+from posecast.solver.rig import Rig, build_rig, global_pose, within_limits
 
 
 @pytest.fixture(scope="module")
@@ -146,7 +146,7 @@ def test_unknown_solver_is_refused(rig: Rig) -> None:
 def test_the_elbow_angle_from_the_lowest_point_of_its_circle() -> None:
     """_below: signed angle about the shoulder-wrist line from the circle's lowest point
     to the elbow turned by psi; 0 when the line is (nearly) vertical."""
-    from solver.ik.analytic import _below
+    from posecast.solver.ik.analytic import _below
 
     unit = np.array([0.0, 0.0, 0.0, 1.0])
     offsets = np.zeros((2, 3))
@@ -162,7 +162,7 @@ def test_a_bent_arms_elbow_is_turned_part_of_the_way_down(rig: Rig) -> None:
     """With the hand turned so that a neutral wrist would put the elbow out to the side,
     the solved elbow ends lower than that, by ELBOW_DOWN_SHARE of its angle from the
     lowest point of its circle."""
-    from solver.ik.analytic import ELBOW_DOWN_SHARE
+    from posecast.solver.ik.analytic import ELBOW_DOWN_SHARE
 
     q = PoseBatch.canonical(rig, 1).rotations.copy()
     upper, elbow, hand = (rig.role(f"{b}_l") for b in ("upperarm", "forearm", "hand"))

@@ -8,20 +8,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from client.builtin import builtin_motion_path
-from client.sources import SPEC_FORMS, SourceError, open_source
-from client.sources.base import ROLES
-from client.sources.bvh_source import BvhSource
-from client.sources.vive_source import ViveFileSource
-from solver import rotations as R
-from solver.calibration import calibrate
-from solver.fk import forward_kinematics
-from solver.ik import PoseBatch, Solver
-from solver.readers.bvh import read_bvh
-from solver.readers.errors import FormatError
-from solver.readers.gltf import load_makehuman
-from solver.readers.vive import read_vive
-from solver.rig import build_rig
+from posecast.client.builtin import builtin_motion_path
+from posecast.client.sources import SPEC_FORMS, SourceError, open_source
+from posecast.client.sources.base import ROLES
+from posecast.client.sources.bvh_source import BvhSource
+from posecast.client.sources.vive_source import ViveFileSource
+from posecast.solver import rotations as R
+from posecast.solver.calibration import calibrate
+from posecast.solver.fk import forward_kinematics
+from posecast.solver.ik import PoseBatch, Solver
+from posecast.solver.readers.bvh import read_bvh
+from posecast.solver.readers.errors import FormatError
+from posecast.solver.readers.gltf import load_makehuman
+from posecast.solver.readers.vive import read_vive
+from posecast.solver.rig import build_rig
 
 SharedData = Callable[[str], Path]
 HEADER = "tag rawPosX rawPosY rawPosZ rawRotX rawRotY rawRotZ rawRotW scale\n"
@@ -181,8 +181,8 @@ def test_calibration_raises_the_hips_and_knees_and_keeps_the_ankles(
         walker: BvhSource, monkeypatch: pytest.MonkeyPatch) -> None:
     """The legs pivot HIP_PIVOT_RAISE and bend KNEE_PIVOT_RAISE (scaled) higher than the
     template's joints; the T-pose ankles stay where the template's would be."""
-    from solver import calibration
-    from solver.rig import global_pose
+    from posecast.solver import calibration
+    from posecast.solver.rig import global_pose
 
     rig = build_rig(load_makehuman().skeleton)
     tpose = walker.calibration()

@@ -18,9 +18,13 @@ import openvr
 import pytest
 from numpy.typing import NDArray
 
-from client.sources import SourceError, open_source
-from client.sources.openvr_source import OpenVRSource, load_serial_roles, poses_from_matrices
-from solver import rotations as R
+from posecast.client.sources import SourceError, open_source
+from posecast.client.sources.openvr_source import (
+    OpenVRSource,
+    load_serial_roles,
+    poses_from_matrices,
+)
+from posecast.solver import rotations as R
 
 TABLE_TYPES = dict(openvr.IVRSystem_FnTable._fields_)
 # getStringTrackedDeviceProperty's table prototype passes the buffer as c_char_p, which a

@@ -10,10 +10,10 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from client.viewer.bench import Clip, solve_builtin_clip
-from client.viewer.camera import OrbitCamera, first_person, mirror
-from client.viewer.renderer import BACKGROUND, AvatarDraw, GLUnavailableError, Renderer
-from client.viewer.skinning import (
+from posecast.client.viewer.bench import Clip, solve_builtin_clip
+from posecast.client.viewer.camera import OrbitCamera, first_person, mirror
+from posecast.client.viewer.renderer import BACKGROUND, AvatarDraw, GLUnavailableError, Renderer
+from posecast.client.viewer.skinning import (
     FittedAvatar,
     SkeletonMismatchError,
     bind_offsets,
@@ -21,9 +21,9 @@ from client.viewer.skinning import (
     skin,
     template_avatar,
 )
-from protocol import AvatarInfo
-from solver import rotations as R
-from solver.readers.gltf import SkinnedMesh, load_makehuman
+from posecast.protocol import AvatarInfo
+from posecast.solver import rotations as R
+from posecast.solver.readers.gltf import SkinnedMesh, load_makehuman
 
 W, H = 640, 480
 

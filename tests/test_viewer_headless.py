@@ -14,16 +14,16 @@ import pytest
 from conftest import serving
 from PIL import Image
 
-from client.builtin import builtin_motion_path
-from client.player import run_player
-from client.sources.bvh_source import BvhSource
-from client.spectator import Spectator
-from client.viewer.core import ViewerStats
-from client.viewer.headless import HeadlessStats, render_spectator, run_headless_viewer
-from client.viewer.interpolation import Mode
-from client.viewer.renderer import BACKGROUND, GLUnavailableError, create_headless_context
-from client.viewer.window import NoDisplayError, check_display, run_window_viewer
-from server.app import Session
+from posecast.client.builtin import builtin_motion_path
+from posecast.client.player import run_player
+from posecast.client.sources.bvh_source import BvhSource
+from posecast.client.spectator import Spectator
+from posecast.client.viewer.core import ViewerStats
+from posecast.client.viewer.headless import HeadlessStats, render_spectator, run_headless_viewer
+from posecast.client.viewer.interpolation import Mode
+from posecast.client.viewer.renderer import BACKGROUND, GLUnavailableError, create_headless_context
+from posecast.client.viewer.window import NoDisplayError, check_display, run_window_viewer
+from posecast.server.app import Session
 
 T = TypeVar("T")
 TIMEOUT = 5.0

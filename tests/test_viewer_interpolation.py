@@ -5,15 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from client.viewer.interpolation import (
+from posecast.client.viewer.interpolation import (
     Interpolator,
     JitterEstimator,
     Mode,
     Snapshot,
     SnapshotBuffer,
 )
-from protocol import AvatarFrame
-from solver import rotations as R
+from posecast.protocol import AvatarFrame
+from posecast.solver import rotations as R
 
 J = 5
 RATE = 90.0

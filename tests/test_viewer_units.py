@@ -7,18 +7,18 @@ import itertools
 import numpy as np
 import pytest
 
-from client.viewer.camera import OrbitCamera, look_at, mirror
-from client.viewer.lod import (
+from posecast.client.viewer.camera import OrbitCamera, look_at, mirror
+from posecast.client.viewer.lod import (
     HARDWARE_BUDGET,
     SOFTWARE_BUDGET,
     build_lods,
     choose_levels,
     default_budget,
 )
-from client.viewer.overlay import hud_lines
-from client.viewer.skinning import body_scale, fit_matrices, joint_matrices, skin
-from solver import rotations as R
-from solver.readers.gltf import SkinnedMesh, load_makehuman
+from posecast.client.viewer.overlay import hud_lines
+from posecast.client.viewer.skinning import body_scale, fit_matrices, joint_matrices, skin
+from posecast.solver import rotations as R
+from posecast.solver.readers.gltf import SkinnedMesh, load_makehuman
 
 
 @pytest.fixture(scope="module")
@@ -137,12 +137,12 @@ def test_a_calibrated_avatar_wears_the_mesh_without_tearing(mesh: SkinnedMesh) -
     those joints, so at rest the body and legs are the template mesh scaled by the body
     scale, exactly (bound to the template's own hips, the thighs' flesh moved up with the
     raised joints and the skin at the hips tore into sheets)."""
-    from client.builtin import builtin_motion_path
-    from client.sources.bvh_source import BvhSource
-    from client.viewer.skinning import fit_avatar, pose_matrices
-    from protocol import AvatarInfo
-    from solver.calibration import calibrate
-    from solver.rig import build_rig
+    from posecast.client.builtin import builtin_motion_path
+    from posecast.client.sources.bvh_source import BvhSource
+    from posecast.client.viewer.skinning import fit_avatar, pose_matrices
+    from posecast.protocol import AvatarInfo
+    from posecast.solver.calibration import calibrate
+    from posecast.solver.rig import build_rig
 
     sk = mesh.skeleton
     tpose = BvhSource(builtin_motion_path()).calibration()

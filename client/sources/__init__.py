@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from client.sources.base import ROLES, DeviceSample, PoseSource, SourceError, now
+from posecast.client.sources.base import ROLES, DeviceSample, PoseSource, SourceError, now
 
 __all__ = ["ROLES", "SPEC_FORMS", "DeviceSample", "PoseSource", "SourceError", "now",
            "open_source"]
@@ -23,7 +23,7 @@ def open_source(spec: str, config: Path | None = None, loop: bool = False) -> Po
     if kind == "openvr" and not sep:
         # imported here: the native OpenVR library loads only for those who ask for it
         try:
-            from client.sources.openvr_source import OpenVRSource
+            from posecast.client.sources.openvr_source import OpenVRSource
         except (ImportError, OSError) as err:
             raise SourceError(f"the openvr package cannot load: {err}") from None
         return OpenVRSource(config)
@@ -31,8 +31,8 @@ def open_source(spec: str, config: Path | None = None, loop: bool = False) -> Po
         if config is not None:
             raise SourceError(f"a config file is for the openvr source, not {kind}:FILE")
         if kind == "vive":
-            from client.sources.vive_source import ViveFileSource
+            from posecast.client.sources.vive_source import ViveFileSource
             return ViveFileSource(path, loop=loop)
-        from client.sources.bvh_source import BvhSource
+        from posecast.client.sources.bvh_source import BvhSource
         return BvhSource(path, loop=loop)
     raise SourceError(f"unknown pose source {spec!r}: use one of {', '.join(SPEC_FORMS)}")

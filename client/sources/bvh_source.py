@@ -25,13 +25,13 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from client.sources.base import ROLES, DeviceSample, SourceError, now
-from solver import rotations as R
-from solver.calibration import EFFECTOR_DEVICES, EYE_FROM_HEAD_JOINT
-from solver.evaluation import _reference_pose
-from solver.fk import forward_kinematics
-from solver.readers.bvh import read_bvh
-from solver.rig import EFFECTORS, Rig, build_rig, global_pose
+from posecast.client.sources.base import ROLES, DeviceSample, SourceError, now
+from posecast.solver import rotations as R
+from posecast.solver.calibration import EFFECTOR_DEVICES, EYE_FROM_HEAD_JOINT
+from posecast.solver.evaluation import _reference_pose
+from posecast.solver.fk import forward_kinematics
+from posecast.solver.readers.bvh import read_bvh
+from posecast.solver.rig import EFFECTORS, Rig, build_rig, global_pose
 
 Array = NDArray[np.float64]
 

@@ -27,9 +27,9 @@ import numpy as np
 import openvr
 from numpy.typing import NDArray
 
-from client.sources.base import ROLES, DeviceSample, SourceError, now
-from solver import rotations as R
-from solver.motion import DRIVING_DEVICES
+from posecast.client.sources.base import ROLES, DeviceSample, SourceError, now
+from posecast.solver import rotations as R
+from posecast.solver.motion import DRIVING_DEVICES
 
 DEFAULT_RATE_HZ = 90.0  # Vive and Vive Pro run at 90 Hz; used when the HMD does not say
 RESCAN_SECONDS = 1.0  # re-read device roles this often, besides on device events

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from client.sources.base import ROLES, DeviceSample, SourceError, now
-from solver.readers.vive import VIVE_FPS, read_vive
+from posecast.client.sources.base import ROLES, DeviceSample, SourceError, now
+from posecast.solver.readers.vive import VIVE_FPS, read_vive
 
 
 class ViveFileSource:

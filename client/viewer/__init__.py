@@ -19,18 +19,18 @@ Entry points (for ``posecast view`` and ``posecast demo --render DIR``):
 ``run_window_viewer``; ``client.viewer.bench.bench_render``.
 """
 
-from client.viewer.core import Viewer, ViewerStats
-from client.viewer.headless import (
+from posecast.client.viewer.core import Viewer, ViewerStats
+from posecast.client.viewer.headless import (
     HeadlessStats,
     HeadlessViewerProcess,
     ViewerProcessError,
     render_spectator,
     run_headless_viewer,
 )
-from client.viewer.interpolation import Interpolator, Mode
-from client.viewer.renderer import GLUnavailableError, Renderer
-from client.viewer.scene import SpectatorScene, ViewerSpectator, ViewMode
-from client.viewer.window import NoDisplayError, check_display, run_window_viewer
+from posecast.client.viewer.interpolation import Interpolator, Mode
+from posecast.client.viewer.renderer import GLUnavailableError, Renderer
+from posecast.client.viewer.scene import SpectatorScene, ViewerSpectator, ViewMode
+from posecast.client.viewer.window import NoDisplayError, check_display, run_window_viewer
 
 __all__ = [
     "GLUnavailableError",

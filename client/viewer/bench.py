@@ -22,17 +22,17 @@ import numpy as np
 from numpy.typing import NDArray
 from PIL import Image
 
-from client.builtin import builtin_motion_path
-from client.sources.bvh_source import BvhSource
-from client.viewer.camera import OrbitCamera
-from client.viewer.overlay import TextItem, TextOverlay, hud_lines, label_items
-from client.viewer.renderer import AvatarDraw, Renderer, avatar_color
-from client.viewer.skinning import FittedAvatar, fit_avatar
-from protocol import AvatarInfo
-from solver.calibration import calibrate
-from solver.ik import PoseBatch, Solver
-from solver.readers.gltf import SkinnedMesh, load_makehuman
-from solver.rig import build_rig
+from posecast.client.builtin import builtin_motion_path
+from posecast.client.sources.bvh_source import BvhSource
+from posecast.client.viewer.camera import OrbitCamera
+from posecast.client.viewer.overlay import TextItem, TextOverlay, hud_lines, label_items
+from posecast.client.viewer.renderer import AvatarDraw, Renderer, avatar_color
+from posecast.client.viewer.skinning import FittedAvatar, fit_avatar
+from posecast.protocol import AvatarInfo
+from posecast.solver.calibration import calibrate
+from posecast.solver.ik import PoseBatch, Solver
+from posecast.solver.readers.gltf import SkinnedMesh, load_makehuman
+from posecast.solver.rig import build_rig
 
 Array = NDArray[np.float64]
 WARMUP_FRAMES = 5
@@ -175,7 +175,7 @@ def format_render_table(result: dict[str, object]) -> str:
             f"({result['triangles_per_frame']} triangles, budget {result['triangle_budget']})")
 
 
-if __name__ == "__main__":  # python -m client.viewer.bench [avatars] [frames]
+if __name__ == "__main__":  # python -m posecast.client.viewer.bench [avatars] [frames]
     import json
     import sys
 

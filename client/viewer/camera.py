@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from solver import rotations as R
+from posecast.solver import rotations as R
 
 Array = NDArray[np.float64]
 UP = np.array([0.0, 1.0, 0.0])

@@ -22,12 +22,18 @@ from pathlib import Path
 
 import numpy as np
 
-from client.latency import LatencyRecorder
-from client.viewer.camera import Camera, OrbitCamera
-from client.viewer.interpolation import Mode
-from client.viewer.overlay import TextItem, TextOverlay, hud_lines, label_items
-from client.viewer.renderer import PosedScene, Renderer, avatar_color
-from client.viewer.scene import SceneFrame, SpectatorScene, ViewMode, view_camera, view_target
+from posecast.client.latency import LatencyRecorder
+from posecast.client.viewer.camera import Camera, OrbitCamera
+from posecast.client.viewer.interpolation import Mode
+from posecast.client.viewer.overlay import TextItem, TextOverlay, hud_lines, label_items
+from posecast.client.viewer.renderer import PosedScene, Renderer, avatar_color
+from posecast.client.viewer.scene import (
+    SceneFrame,
+    SpectatorScene,
+    ViewMode,
+    view_camera,
+    view_target,
+)
 
 HUD_REFRESH_S = 0.25  # the HUD's numbers change this often (readable, and cheap)
 HUD_WINDOW = 2000  # latency samples per stage the HUD's percentiles look back over

@@ -32,13 +32,13 @@ import numpy as np
 from numpy.typing import NDArray
 from PIL import Image
 
-from client.sources.base import now
-from client.spectator import Spectator, SpectatorStats
-from client.viewer.camera import OrbitCamera
-from client.viewer.core import Viewer, ViewerStats
-from client.viewer.interpolation import Interpolator, Mode
-from client.viewer.renderer import Renderer
-from client.viewer.scene import SpectatorScene, ViewerSpectator, ViewMode
+from posecast.client.sources.base import now
+from posecast.client.spectator import Spectator, SpectatorStats
+from posecast.client.viewer.camera import OrbitCamera
+from posecast.client.viewer.core import Viewer, ViewerStats
+from posecast.client.viewer.interpolation import Interpolator, Mode
+from posecast.client.viewer.renderer import Renderer
+from posecast.client.viewer.scene import SpectatorScene, ViewerSpectator, ViewMode
 
 DEFAULT_INTERVAL_MS = 1000.0 / 30.0
 PNG_COMPRESS_LEVEL = 1  # zlib level: fast (~10 ms a 720p frame), files ~2x level 6's

@@ -37,8 +37,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol import AvatarFrame
-from solver import rotations as R
+from posecast.protocol import AvatarFrame
+from posecast.solver import rotations as R
 
 Array = NDArray[np.float64]
 

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from solver.readers.gltf import SkinnedMesh
+from posecast.solver.readers.gltf import SkinnedMesh
 
 # cell sizes of the levels, metres; 0 is the full mesh. Triangles of the MakeHuman mesh:
 # 26.8k, 13.0k, 9.8k, 7.3k, 5.6k, 4.3k, 2.3k

@@ -17,8 +17,8 @@ import moderngl
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from client.viewer.camera import Camera
-from client.viewer.renderer import uniform
+from posecast.client.viewer.camera import Camera
+from posecast.client.viewer.renderer import uniform
 
 # the stages the HUD lists, in the order a pose travels (those present are shown)
 HUD_STAGES = ("capture_to_server", "server", "network_to_spectator", "capture_to_spectator",

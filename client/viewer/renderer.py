@@ -30,11 +30,11 @@ import moderngl
 import numpy as np
 from numpy.typing import NDArray
 
-from client.viewer.camera import Camera, OrbitCamera
-from client.viewer.lod import DEFAULT_CELLS, build_lods, choose_levels, default_budget
-from client.viewer.skinning import Array, FittedAvatar, pose_matrices, template_avatar
-from solver import rotations as R
-from solver.readers.gltf import SkinnedMesh, load_makehuman
+from posecast.client.viewer.camera import Camera, OrbitCamera
+from posecast.client.viewer.lod import DEFAULT_CELLS, build_lods, choose_levels, default_budget
+from posecast.client.viewer.skinning import Array, FittedAvatar, pose_matrices, template_avatar
+from posecast.solver import rotations as R
+from posecast.solver.readers.gltf import SkinnedMesh, load_makehuman
 
 # distinct, readable avatar colours (linear-ish RGB), cycled by avatar id
 PALETTE: tuple[tuple[float, float, float], ...] = (

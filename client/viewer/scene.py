@@ -15,13 +15,13 @@ import enum
 import logging
 from dataclasses import dataclass
 
-from client.spectator import ReceivedFrame, Spectator
-from client.viewer.camera import Camera, OrbitCamera, first_person, mirror
-from client.viewer.interpolation import Interpolator, Mode, Sampled
-from client.viewer.renderer import AvatarDraw, PosedScene
-from client.viewer.skinning import FittedAvatar, SkeletonMismatchError, fit_avatar
-from protocol import AvatarBatch, AvatarInfo, AvatarRoster, ClockEstimator
-from solver.readers.gltf import SkinnedMesh, load_makehuman
+from posecast.client.spectator import ReceivedFrame, Spectator
+from posecast.client.viewer.camera import Camera, OrbitCamera, first_person, mirror
+from posecast.client.viewer.interpolation import Interpolator, Mode, Sampled
+from posecast.client.viewer.renderer import AvatarDraw, PosedScene
+from posecast.client.viewer.skinning import FittedAvatar, SkeletonMismatchError, fit_avatar
+from posecast.protocol import AvatarBatch, AvatarInfo, AvatarRoster, ClockEstimator
+from posecast.solver.readers.gltf import SkinnedMesh, load_makehuman
 
 log = logging.getLogger(__name__)
 

@@ -42,13 +42,13 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol import AvatarInfo
-from solver import rotations as R
-from solver.calibration import EYE_FROM_HEAD_JOINT, leg_joints, raise_leg_pivots
-from solver.fk import forward_kinematics
-from solver.readers.gltf import SkinnedMesh
-from solver.rig import build_rig, global_pose
-from solver.skeleton import Skeleton
+from posecast.protocol import AvatarInfo
+from posecast.solver import rotations as R
+from posecast.solver.calibration import EYE_FROM_HEAD_JOINT, leg_joints, raise_leg_pivots
+from posecast.solver.fk import forward_kinematics
+from posecast.solver.readers.gltf import SkinnedMesh
+from posecast.solver.rig import build_rig, global_pose
+from posecast.solver.skeleton import Skeleton
 
 Array = NDArray[np.float64]
 

@@ -31,11 +31,11 @@ import moderngl
 import numpy as np
 from PIL import Image
 
-from client.sources.base import now
-from client.viewer.core import Viewer, ViewerStats
-from client.viewer.interpolation import Interpolator, Mode
-from client.viewer.renderer import Renderer
-from client.viewer.scene import SpectatorScene, ViewerSpectator, ViewMode
+from posecast.client.sources.base import now
+from posecast.client.viewer.core import Viewer, ViewerStats
+from posecast.client.viewer.interpolation import Interpolator, Mode
+from posecast.client.viewer.renderer import Renderer
+from posecast.client.viewer.scene import SpectatorScene, ViewerSpectator, ViewMode
 
 DEFAULT_FPS = 60.0
 _VIEW_KEYS = {"1": ViewMode.ORBIT, "2": ViewMode.FIRST_PERSON, "3": ViewMode.MIRROR}

@@ -21,11 +21,11 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from solver.ik.analytic import solve_analytic_batch
-from solver.ik.chains import ChainArrays, chain_arrays
-from solver.ik.dls import solve_dls_batch
-from solver.ik.paper import solve_paper_batch
-from solver.rig import Rig
+from posecast.solver.ik.analytic import solve_analytic_batch
+from posecast.solver.ik.chains import ChainArrays, chain_arrays
+from posecast.solver.ik.dls import solve_dls_batch
+from posecast.solver.ik.paper import solve_paper_batch
+from posecast.solver.rig import Rig
 
 # numba's OpenMP workers spin after each parallel solve, by default for up to
 # milliseconds: a server solving once a frame would keep a core busy for nothing, and on

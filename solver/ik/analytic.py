@@ -30,7 +30,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from solver.kernels import (
+from posecast.solver.kernels import (
     PARALLEL_MIN_AVATARS,
     Quat,
     clamp_joint_at,

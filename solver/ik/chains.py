@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from solver.rig import Rig
+from posecast.solver.rig import Rig
 
 CHAIN_EFFECTORS = ("head", "hand_l", "hand_r", "foot_l", "foot_r")
 MAX_CHAIN = 8

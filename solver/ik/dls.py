@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from solver.kernels import PARALLEL_MIN_AVATARS, dls_chain, dls_scratch, place_root
+from posecast.solver.kernels import PARALLEL_MIN_AVATARS, dls_chain, dls_scratch, place_root
 
 
 @njit(cache=True)

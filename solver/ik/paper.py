@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from solver.kernels import (
+from posecast.solver.kernels import (
     PARALLEL_MIN_AVATARS,
     clamp_joint_at,
     effector_error,

@@ -30,8 +30,8 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from solver.atomics import atomic_cas, atomic_load, atomic_store, cpu_pause
-from solver.ik.analytic import analytic_work, solve_analytic_one
+from posecast.solver.atomics import atomic_cas, atomic_load, atomic_store, cpu_pause
+from posecast.solver.ik.analytic import analytic_work, solve_analytic_one
 
 CLAIM, SEQ, STOP, READY, DONE = 0, 1, 2, 3, 4
 FIELD = 20  # bits of n and of the next avatar in CLAIM

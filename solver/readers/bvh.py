@@ -30,11 +30,11 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from solver import rotations as rot
-from solver.motion import Motion
-from solver.readers.errors import FormatError
-from solver.readers.text import read_lines
-from solver.skeleton import Skeleton
+from posecast.solver import rotations as rot
+from posecast.solver.motion import Motion
+from posecast.solver.readers.errors import FormatError
+from posecast.solver.readers.text import read_lines
+from posecast.solver.skeleton import Skeleton
 
 Array = NDArray[np.float64]
 

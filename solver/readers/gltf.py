@@ -33,8 +33,8 @@ from typing import Any, NoReturn
 import numpy as np
 from numpy.typing import NDArray
 
-from solver.readers.errors import FormatError
-from solver.skeleton import Skeleton, SkeletonError
+from posecast.solver.readers.errors import FormatError
+from posecast.solver.skeleton import Skeleton, SkeletonError
 
 MAKEHUMAN_ASSET = "MakeHuman_hm08_game_engine_CC0.glb"
 DEFAULT_BASE_COLOR = (0.8, 0.8, 0.8, 1.0)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from solver.readers.errors import FormatError
+from posecast.solver.readers.errors import FormatError
 
 
 def read_lines(path: Path, src: str, encoding: str, what: str) -> list[str]:

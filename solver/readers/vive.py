@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from solver.motion import ViveRecording
-from solver.readers.errors import FormatError
-from solver.readers.text import read_lines
+from posecast.solver.motion import ViveRecording
+from posecast.solver.readers.errors import FormatError
+from posecast.solver.readers.text import read_lines
 
 VIVE_FPS = 90.0  # the recordings are replayed at 90 Hz (see the data README)
 HEADER = ("tag", "rawPosX", "rawPosY", "rawPosZ", "rawRotX", "rawRotY", "rawRotZ", "rawRotW",
