@@ -1,6 +1,8 @@
 # Two entry points for a fresh Debian/Ubuntu machine with python3 and make:
 #   make demo   set everything up and run the main job
 #   make test   set everything up and run lint, types and the test suite
+# any Python >= 3.11 (make PYTHON=python3.11 where python3 is older)
+PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
@@ -8,17 +10,20 @@ STAMP := $(VENV)/.installed
 .PHONY: demo test lint setup clean
 
 $(STAMP): pyproject.toml deploy/bootstrap.sh
-	sh deploy/bootstrap.sh
+	PYTHON=$(PYTHON) sh deploy/bootstrap.sh
 	$(PY) -m pip install --quiet --upgrade pip
 	PYTHONWARNINGS="ignore:Editable installation" $(PY) -m pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 
+# compile the solver kernels into numba's on-disk cache, so that no command a person types
+# waits for them (a second or so when they are cached already)
 setup: $(STAMP)
+	$(VENV)/bin/posecast warm
 
-demo: $(STAMP)
+demo: setup
 	$(VENV)/bin/posecast demo
 
-lint: $(STAMP)
+lint: setup
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/mypy
 

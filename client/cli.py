@@ -4,6 +4,7 @@ so that tests call the same functions)."""
 from __future__ import annotations
 
 import argparse
+import atexit
 import json
 import math
 import sys
@@ -11,6 +12,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from posecast.client.jit import CompileNotice, warm_kernels
 from posecast.solver.ik import DEFAULT_SOLVER, SOLVERS, SolverOptions
 
 if TYPE_CHECKING:
@@ -43,6 +45,9 @@ def _parser() -> argparse.ArgumentParser:
     ev.add_argument("--smoothing", type=float, default=0.0,
                     help="SLERP smoothing, weight of the previous frame in [0, 1)")
     ev.add_argument("--json", action="store_true", help="print one JSON document")
+
+    sub.add_parser("warm", help="compile the solver kernels now, into numba's on-disk cache "
+                   "(make setup runs it; other commands compile what they lack on first use)")
 
     sv = sub.add_parser("serve", help="host sessions: the websockets server")
     sv.add_argument("--host", default="127.0.0.1",
@@ -138,6 +143,13 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    notice = CompileNotice().install()  # a command that must compile kernels says so
+    atexit.register(notice.close)
+    if args.command == "warm":
+        print(f"kernels ready in {warm_kernels(notice):.1f} s")
+        return 0
+    if args.command in ("demo", "bench"):  # before their processes start, each would compile
+        warm_kernels(notice)
     if args.command == "eval":
         from posecast.client.eval_command import run_eval
 

@@ -2,7 +2,19 @@
 # Make a virtual environment in .venv, installing Debian's python3-venv first when the
 # machine lacks it (a fresh Debian/Ubuntu has python3 but often not venv/ensurepip).
 set -e
-if python3 -m venv --help >/dev/null 2>&1 && python3 -c "import ensurepip" >/dev/null 2>&1; then
+PYTHON=${PYTHON:-python3}
+if ! command -v "$PYTHON" >/dev/null 2>&1; then
+    echo "posecast needs Python >= 3.11, and there is no $PYTHON on this machine:" \
+         "install it (Debian/Ubuntu: apt-get install python3 python3-venv)" >&2
+    exit 1
+fi
+if ! "$PYTHON" -c 'import sys; sys.exit(sys.version_info < (3, 11))'; then
+    echo "posecast needs Python >= 3.11, and $PYTHON is $("$PYTHON" -V 2>&1 | cut -d' ' -f2)." \
+         "Install a newer one (Ubuntu 22.04: apt-get install python3.11 python3.11-venv)" \
+         "and run: make PYTHON=python3.11" >&2
+    exit 1
+fi
+if "$PYTHON" -m venv --help >/dev/null 2>&1 && "$PYTHON" -c "import ensurepip" >/dev/null 2>&1; then
     :
 else
     SUDO=""
@@ -11,7 +23,7 @@ else
     $SUDO apt-get update -qq
     $SUDO apt-get install -y -qq python3-venv python3-pip
 fi
-[ -x .venv/bin/python ] || python3 -m venv .venv
+[ -x .venv/bin/python ] || "$PYTHON" -m venv .venv
 # Headless OpenGL for the viewer: moderngl renders through EGL, with Mesa's software
 # rasterizer (llvmpipe) where there is no GPU. Install what is missing (Debian/Ubuntu).
 GL_MISSING=""
