@@ -138,6 +138,11 @@ def _parser() -> argparse.ArgumentParser:
     bv.add_argument("--no-helper", dest="helper", action="store_false",
                     help="the server solves alone (see demo --no-helper)")
     bv.add_argument("--json", action="store_true")
+    bu = bsub.add_parser("startup", help="seconds the first commands take after set-up "
+                         "(--version, serve until listening, eval of the built-in clip)")
+    bu.add_argument("--runs", type=_positive_ints, default=[5],
+                    help="fresh processes per command (default: 5)")
+    bu.add_argument("--json", action="store_true")
     return p
 
 
@@ -189,6 +194,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         result = bench_server(args.counts, args.seconds,
                               helper=None if args.helper else False)
         print(json.dumps(result) if args.json else format_server_table(result))
+        return 0
+    if args.command == "bench" and args.bench == "startup":
+        from posecast.client.bench_startup import bench_startup, format_startup_table
+
+        doc = bench_startup(args.runs[0])
+        print(json.dumps(doc) if args.json else format_startup_table(doc))
         return 0
     return 2
 

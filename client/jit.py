@@ -18,6 +18,7 @@ from typing import TextIO
 from numba.core import event
 
 Step = tuple[str, Callable[[], None]]
+NOTICE = "compiling solver kernels, first run only"
 
 
 class CompileNotice(event.Listener):
@@ -38,8 +39,8 @@ class CompileNotice(event.Listener):
         self._depth += 1
         if self._started is None:
             self._started = time.monotonic()
-            self.stream.write("posecast: compiling solver kernels, first run only "
-                              "(about a minute; `posecast warm` does it ahead) ...\n")
+            self.stream.write(f"posecast: {NOTICE} (about a minute; `posecast warm` "
+                              "does it ahead) ...\n")
             self.stream.flush()
 
     def on_end(self, event: event.Event) -> None:
