@@ -30,7 +30,9 @@ from posecast.solver import rotations as R
 from posecast.solver.calibration import EFFECTOR_DEVICES, EYE_FROM_HEAD_JOINT
 from posecast.solver.evaluation import _reference_pose
 from posecast.solver.fk import forward_kinematics
+from posecast.solver.motion import ViveRecording
 from posecast.solver.readers.bvh import read_bvh
+from posecast.solver.readers.vive import VIVE_FPS
 from posecast.solver.rig import EFFECTORS, Rig, build_rig, global_pose
 
 Array = NDArray[np.float64]
@@ -133,6 +135,20 @@ class BvhSource:
 
     def close(self) -> None:
         pass
+
+
+def tracker_recording(path: str | Path, seconds: float,
+                      rate_hz: float = VIVE_FPS) -> ViveRecording:
+    """A clip's simulated trackers as a Vive recording: frame 0 the T-pose (the
+    calibration sample, as in the paper authors' files), then ``seconds`` of motion."""
+    source = BvhSource(path, rate_hz=rate_hz)
+    frames = [np.concatenate([source.tpose_positions, source.tpose_rotations], axis=1)]
+    while len(frames) <= round(seconds * rate_hz) and (sample := source.read()) is not None:
+        frames.append(sample.poses)
+    poses = np.stack(frames)
+    return ViveRecording(devices=ROLES, positions=np.ascontiguousarray(poses[..., :3]),
+                         rotations=np.ascontiguousarray(poses[..., 3:]), fps=rate_hz,
+                         source=str(path))
 
 
 def _heading(rig: Rig, gp: Array) -> Array:

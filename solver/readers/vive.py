@@ -195,3 +195,24 @@ def _recording(src: str, first: list[str], values: NDArray[np.float64]) -> ViveR
         fps=VIVE_FPS,
         source=src,
     )
+
+
+# file order of the paper authors' recordings: each hand before its forearm
+FILE_ORDER = ("head", "hip", "lHand", "lForeArm", "rHand", "rForeArm", "lFoot", "rFoot",
+              "lKnee", "rKnee")
+
+
+def format_vive(rec: ViveRecording, scale: float = 1.0) -> str:
+    """A recording as the text of a Vive recording file (read back by ``read_vive``), its
+    devices in the authors' file order; 6 significant digits, as their files have."""
+    tags = [t for t in FILE_ORDER if TAGS[t] in rec.devices]
+    missing = set(rec.devices) - {TAGS[t] for t in tags}
+    if missing:
+        raise ValueError(f"devices the format has no tag for: {', '.join(sorted(missing))}")
+    order = [rec.device(TAGS[t]) for t in tags]
+    lines = [" ".join(HEADER)]
+    for f in range(rec.num_frames):
+        for tag, d in zip(tags, order, strict=True):
+            values = (*rec.positions[f, d], *rec.rotations[f, d], scale)
+            lines.append(" ".join([tag, *(f"{v:.6g}" for v in values)]))
+    return "\n".join(lines) + "\n"
