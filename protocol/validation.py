@@ -10,6 +10,7 @@ non-unit quaternions, naming the row. ``protocol_error`` turns a pydantic
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Sequence
 from typing import Annotated, Any, TypeVar
 
@@ -55,8 +56,21 @@ def _printable(value: str) -> str:
 
 Name = Annotated[str, Strict(), Field(min_length=1, max_length=MAX_NAME_CHARS),
                  AfterValidator(_printable)]
-# room names end up in URLs, command lines and logs: keep them plain
-RoomName = Annotated[str, Strict(), Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")]
+# room names end up in URLs, command lines and logs: keep them plain, and say the rule in
+# words (a regex in an error message helps nobody)
+ROOM_NAME_RULE = ("room names are 1-64 letters, digits, '-', '_' or '.', starting with a "
+                  "letter or digit")
+_ROOM_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
+
+
+def check_room_name(value: str) -> str:
+    """``value`` if it is a valid room name, else ValueError stating the rule."""
+    if not _ROOM_NAME.fullmatch(value):
+        raise ValueError(f"{ROOM_NAME_RULE}, got {_short_repr(value)}")
+    return value
+
+
+RoomName = Annotated[str, Strict(), AfterValidator(check_room_name)]
 Token = Annotated[str, Strict(), Field(min_length=1, max_length=MAX_TOKEN_CHARS)]
 Text = Annotated[str, Strict(), Field(max_length=MAX_TEXT_CHARS)]
 RateHz = Annotated[float, Strict(), Field(gt=0.0, le=MAX_RATE_HZ, allow_inf_nan=False)]
