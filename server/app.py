@@ -106,10 +106,18 @@ class Session:
         if hello is None:
             return
         room = self.room(hello.room)
-        if hello.role == "player":
-            await self._player(ws, conn_id, room, hello)
-        else:
-            await self._spectator(ws, conn_id, room, hello)
+        # who is who in the log: role, name, room and address on join and on leave
+        who = (f"{hello.role} {_safe(hello.display_name)} in room {_safe(hello.room)} "
+               f"from {_peer(ws)}")
+        log.info("%s joined (connection %d)", who, conn_id)
+        t_joined = now()
+        try:
+            if hello.role == "player":
+                await self._player(ws, conn_id, room, hello)
+            else:
+                await self._spectator(ws, conn_id, room, hello)
+        finally:
+            log.info("%s left after %.1f s (%s)", who, now() - t_joined, _closed_words(ws))
         if room.empty:
             self.rooms.pop(room.name, None)
 
@@ -124,6 +132,8 @@ class Session:
                                     f"the first message must be hello, got {msg.type}")
         except ProtocolError as err:
             self.metrics.rejected[err.code] += 1
+            log.info("refused a connection from %s: %s: %s", _peer(ws), err.code,
+                     _safe(err.message, 160))
             await ws.send(encode(Error(code=err.code, message=err.message)))
             await ws.close(1008, err.code)
             return None
@@ -262,7 +272,7 @@ class Session:
 
     async def _reject(self, ws: ServerConnection, err: ProtocolError) -> None:
         self.metrics.rejected[err.code] += 1
-        log.info("rejected %s: %s", err.code, err.message)
+        log.info("rejected %s from %s: %s", err.code, _peer(ws), _safe(err.message, 160))
         with contextlib.suppress(ConnectionClosed):
             await ws.send(encode(Error(code=err.code, message=err.message)))
 
@@ -300,6 +310,29 @@ async def run_server(host: str, port: int, session: Session | None = None,
         await server.wait_closed()
     session.avatars.close()
     return session
+
+
+def _peer(ws: ServerConnection) -> str:
+    """The client's address as host:port ([host]:port for IPv6), for log lines."""
+    address = ws.remote_address
+    if not isinstance(address, tuple) or len(address) < 2:
+        return "?"
+    host, port = address[0], address[1]
+    return f"[{host}]:{port}" if ":" in str(host) else f"{host}:{port}"
+
+
+def _safe(text: str, limit: int = 40) -> str:
+    """Client text for a log line: quoted with control characters escaped (repr), cut
+    to ``limit`` characters, so that no client can forge or flood log lines."""
+    return repr(text[:limit]) + ("..." if len(text) > limit else "")
+
+
+def _closed_words(ws: ServerConnection) -> str:
+    """How the connection ended, e.g. "close 1000 'bye'" (1006: lost without a close)."""
+    if ws.close_code is None:
+        return "still open"
+    reason = f" {_safe(ws.close_reason)}" if ws.close_reason else ""
+    return f"close {ws.close_code}{reason}"
 
 
 class TimestampedServerConnection(ArrivalStamps, ServerConnection):
