@@ -7,18 +7,32 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from posecast.client.sources.base import ROLES, DeviceSample, PoseSource, SourceError, now
+from posecast.client.sources.base import (
+    ROLES,
+    DeviceSample,
+    OffsetSource,
+    PoseSource,
+    SourceError,
+    now,
+)
 
-__all__ = ["ROLES", "SPEC_FORMS", "DeviceSample", "PoseSource", "SourceError", "now",
-           "open_source"]
+__all__ = ["ROLES", "SPEC_FORMS", "DeviceSample", "OffsetSource", "PoseSource", "SourceError",
+           "now", "open_source"]
 
 SPEC_FORMS = ("openvr", "vive:FILE", "bvh:FILE")
 
 
-def open_source(spec: str, config: Path | None = None, loop: bool = False) -> PoseSource:
+def open_source(spec: str, config: Path | None = None, loop: bool = False,
+                offset: tuple[float, float] = (0.0, 0.0)) -> PoseSource:
     """The source a spec names: ``openvr`` (live SteamVR devices; ``config``: a TOML file
     of serial-number roles), ``vive:FILE`` (a Vive recording) or ``bvh:FILE`` (simulated
-    trackers from motion capture). ``loop`` replays a file source forever."""
+    trackers from motion capture). ``loop`` replays a file source forever; ``offset``
+    (x, z metres) moves every pose sideways (``OffsetSource``)."""
+    source = _open(spec, config, loop)
+    return OffsetSource(source, offset) if offset != (0.0, 0.0) else source
+
+
+def _open(spec: str, config: Path | None, loop: bool) -> PoseSource:
     kind, sep, path = spec.partition(":")  # only the first colon: "vive:C:\\rec.csv" works
     if kind == "openvr" and not sep:
         # imported here: the native OpenVR library loads only for those who ask for it

@@ -69,3 +69,28 @@ class PoseSource(Protocol):
 
     def close(self) -> None:
         ...
+
+
+class OffsetSource:
+    """Another source's poses moved sideways by ``offset`` (x, z metres) before they are
+    sent, so that players replaying one clip stand apart instead of inside each other.
+    Rotations are unchanged. Each sample gets new rows: a source may hand out its own."""
+
+    def __init__(self, source: PoseSource, offset: tuple[float, float]) -> None:
+        self.source = source
+        self.offset = offset
+        self.rate_hz = source.rate_hz
+        self._shift = np.array([offset[0], 0.0, offset[1], 0.0, 0.0, 0.0, 0.0])
+
+    def _moved(self, sample: DeviceSample) -> DeviceSample:
+        return DeviceSample(sample.t_capture, sample.roles, sample.poses + self._shift)
+
+    def calibration(self) -> DeviceSample:
+        return self._moved(self.source.calibration())
+
+    def read(self) -> DeviceSample | None:
+        sample = self.source.read()
+        return None if sample is None else self._moved(sample)
+
+    def close(self) -> None:
+        self.source.close()
