@@ -4,19 +4,31 @@ so that tests call the same functions)."""
 from __future__ import annotations
 
 import argparse
+import asyncio
 import atexit
+import contextlib
 import json
+import logging
 import math
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from posecast import __version__
+from posecast.client import arguments as arg
 from posecast.client.jit import CompileNotice, warm_kernels
+from posecast.protocol.validation import ROOM_NAME_RULE
 from posecast.solver.ik import DEFAULT_SOLVER, SOLVERS, SolverOptions
 
 if TYPE_CHECKING:
-    from posecast.client.player import Player, PlayerStats
+    from posecast.client.connection import SessionError
+    from posecast.client.player import Player
+    from posecast.client.spectator import Spectator
+    from posecast.client.viewer import ViewerStats
+
+STOPPED = ("Ctrl-C (SIGINT) or SIGTERM stops it cleanly: it prints its summary and exits "
+           "with status 130 (143 for SIGTERM), as a shell reports a signal.")
 
 
 def _positive_ints(text: str) -> list[int]:
@@ -31,18 +43,27 @@ def _positive_ints(text: str) -> list[int]:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="posecast", description=(
-        "Stream full-body VR poses: calibrate, solve and score avatars from Vive trackers."))
-    sub = p.add_subparsers(dest="command", required=True)
+    p = arg.Parser(prog="posecast", description=(
+        "Stream full-body VR poses: calibrate, solve and score avatars from Vive trackers."),
+        epilog="posecast COMMAND --help shows the options of a command.")
+    p.add_argument("--version", action="version", version=f"posecast {__version__}")
+    p.add_argument("--log-level", choices=arg.LOG_LEVELS, default=None,
+                   help="diagnostics on stderr from this level up (default: info for serve, "
+                        "warning for the others); may also follow the command")
+    p.set_defaults(show_help=p.print_help)
+    # not required: a bare `posecast` (or `posecast bench`) prints its help
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
 
     ev = sub.add_parser("eval", help="reconstruct recordings (Vive .csv or .bvh) and score them")
-    ev.add_argument("files", nargs="*", type=Path,
+    ev.add_argument("files", nargs="*", type=arg.existing_file, metavar="FILE",
                     help="recordings; none: the built-in CMU motion clip")
-    ev.add_argument("--solver", choices=SOLVERS, default=DEFAULT_SOLVER)
+    ev.add_argument("--solver", choices=SOLVERS, default=DEFAULT_SOLVER,
+                    help="the inverse kinematics solver")
     ev.add_argument("--max-iterations", type=_positive_ints, default=None,
                     help="iteration limit per chain; several (5,10,30) compare them")
-    ev.add_argument("--calibration", choices=("fit", "uniform"), default="fit")
-    ev.add_argument("--smoothing", type=float, default=0.0,
+    ev.add_argument("--calibration", choices=("fit", "uniform"), default="fit",
+                    help="bone lengths fitted to the T-pose, or the paper's one uniform scale")
+    ev.add_argument("--smoothing", type=arg.fraction, default=0.0,
                     help="SLERP smoothing, weight of the previous frame in [0, 1)")
     ev.add_argument("--json", action="store_true", help="print one JSON document")
 
@@ -52,8 +73,10 @@ def _parser() -> argparse.ArgumentParser:
     sv = sub.add_parser("serve", help="host sessions: the websockets server")
     sv.add_argument("--host", default="127.0.0.1",
                     help="address to listen on (0.0.0.0 for every interface)")
-    sv.add_argument("--port", type=int, default=8765)
-    sv.add_argument("--solver", choices=SOLVERS, default=DEFAULT_SOLVER)
+    sv.add_argument("--port", type=arg.port, default=8765,
+                    help="port to listen on (0: any free one)")
+    sv.add_argument("--solver", choices=SOLVERS, default=DEFAULT_SOLVER,
+                    help="the inverse kinematics solver")
     sv.add_argument("--busy-poll", action="store_true",
                     help="never sleep: poll, and keep the frame path warm between bursts "
                          "(lower latency; takes a whole core, give it one)")
@@ -62,92 +85,151 @@ def _parser() -> argparse.ArgumentParser:
                          "spins on the others and takes part of each batch; this turns "
                          "it off")
 
-    pl = sub.add_parser("play", help="join a session as a tracked player")
-    pl.add_argument("--server", required=True, help="ws://host:port")
-    pl.add_argument("--room", required=True)
-    pl.add_argument("--source", default="openvr",
-                    help="openvr | vive:FILE | bvh:FILE (default: openvr)")
-    pl.add_argument("--name", default="player")
-    pl.add_argument("--token", default=None,
+    pl = sub.add_parser("play", help="join a session as a tracked player",
+                        description="Join a room as a player and stream your tracked poses. "
+                        + STOPPED)
+    pl.add_argument("--server", required=True, type=arg.server_url,
+                    help="the server, ws://HOST:PORT")
+    pl.add_argument("--room", required=True, type=arg.room,
+                    help="the room to join (made on first join); " + ROOM_NAME_RULE)
+    pl.add_argument("--source", default="openvr", type=arg.source,
+                    help="where the poses come from: openvr | vive:FILE | bvh:FILE")
+    pl.add_argument("--name", default="player", type=arg.display_name,
+                    help="the name shown above your avatar")
+    pl.add_argument("--token", default=None, type=arg.token,
                     help="a secret of yours: reconnecting with it keeps your avatar")
-    pl.add_argument("--devices", type=Path, default=None,
+    pl.add_argument("--devices", type=arg.existing_file, default=None,
                     help="TOML file mapping tracker serial numbers to roles (openvr)")
     pl.add_argument("--loop", action="store_true", help="replay a recording forever")
-    pl.add_argument("--seconds", type=float, default=None)
-    pl.add_argument("--calibrate-in", type=float, default=None,
+    pl.add_argument("--offset", type=arg.offset, default=(0.0, 0.0), metavar="X,Z",
+                    help="move every pose sideways by X,Z metres, so that players replaying "
+                         "one clip stand apart (default: 0,0)")
+    pl.add_argument("--seconds", type=arg.positive_float, default=None,
+                    help="stop after this many seconds (default: when the source ends)")
+    pl.add_argument("--calibrate-in", type=arg.non_negative_float, default=None,
                     help="seconds to get into the T-pose before calibrating "
                          "(default: 3 for openvr, 0 for recordings); press Enter to "
                          "recalibrate while playing")
 
-    vw = sub.add_parser("view", help="watch a room: skinned avatars in a window, or to PNGs")
-    vw.add_argument("--server", required=True, help="ws://host:port")
-    vw.add_argument("--room", required=True)
+    vw = sub.add_parser("view", help="watch a room: skinned avatars in a window, or to PNGs",
+                        description="Watch a room: every avatar skinned, in a window or "
+                        "(--headless) to PNG files. " + STOPPED)
+    vw.add_argument("--server", required=True, type=arg.server_url,
+                    help="the server, ws://HOST:PORT")
+    vw.add_argument("--room", required=True, type=arg.room,
+                    help="the room to watch; " + ROOM_NAME_RULE)
     vw.add_argument("--headless", action="store_true",
                     help="no window: render through EGL to PNG files in --out")
-    vw.add_argument("--frames", type=int, default=None,
-                    help="stop after this many frames (headless default: 100)")
-    vw.add_argument("--out", type=Path, default=Path("frames"), help="PNG folder (headless)")
-    vw.add_argument("--size", default="1280x720", help="WIDTHxHEIGHT")
-    vw.add_argument("--fps", type=float, default=30.0)
+    vw.add_argument("--frames", type=arg.positive_int, default=None,
+                    help="stop after this many frames that show a player (default: 100 "
+                         "headless; a window until it is closed)")
+    vw.add_argument("--out", type=arg.out_dir, default=Path("frames"),
+                    help="PNG folder (headless), made if missing")
+    vw.add_argument("--size", type=arg.size, default="1280x720", help="WIDTHxHEIGHT in pixels")
+    vw.add_argument("--fps", type=arg.positive_float, default=30.0,
+                    help="frames drawn per second")
     vw.add_argument("--mode", choices=("interpolate", "zero-buffer"), default="interpolate",
                     help="interpolate: render slightly behind, SLERP between frames; "
                          "zero-buffer: the newest frame, least latency")
-    vw.add_argument("--view", choices=("orbit", "first-person", "mirror"), default="orbit")
-    vw.add_argument("--screenshot", type=Path, default=None,
+    vw.add_argument("--view", choices=("orbit", "first-person", "mirror"), default="orbit",
+                    help="the camera: around everyone, at a player's eyes, or facing them")
+    vw.add_argument("--screenshot", type=arg.out_file, default=None,
                     help="window: save the last frame shown as a PNG")
-    vw.add_argument("--max-rate", type=float, default=None,
+    vw.add_argument("--max-rate", type=arg.rate_hz, default=None,
                     help="ask the server for at most this many batches per second")
+    vw.add_argument("--json", action="store_true",
+                    help="print the summary as one JSON document")
 
     dm = sub.add_parser("demo", help="a whole session on this machine, with latency table")
-    dm.add_argument("--render", type=Path, default=None,
+    dm.add_argument("--render", type=arg.out_dir, default=None,
                     help="also run a headless viewer writing PNG frames to this folder")
     dm.add_argument("--render-mode", choices=("interpolate", "zero-buffer"),
                     default="interpolate", help="the viewer's snapshot mode (with --render)")
-    dm.add_argument("--players", type=int, default=4)
-    dm.add_argument("--spectators", type=int, default=2)
-    dm.add_argument("--seconds", type=float, default=10.0)
-    dm.add_argument("--solver", choices=SOLVERS, default=DEFAULT_SOLVER)
+    dm.add_argument("--players", type=arg.count, default=4,
+                    help="players replaying the built-in walk, each standing apart")
+    dm.add_argument("--spectators", type=arg.count, default=2, help="headless spectators")
+    dm.add_argument("--seconds", type=arg.positive_float, default=10.0,
+                    help="how long the players stream")
+    dm.add_argument("--solver", choices=SOLVERS, default=DEFAULT_SOLVER,
+                    help="the inverse kinematics solver")
     dm.add_argument("--no-busy-poll", dest="busy_poll", action="store_false",
                     help="the server sleeps between bursts (by default it busy-polls "
                          "when it has a core of its own)")
     dm.add_argument("--no-helper", dest="helper", action="store_false",
                     help="the server solves alone (by default, busy polling, a helper "
                          "thread spins on the clients' core and takes part of each batch)")
-    dm.add_argument("--json", action="store_true")
+    dm.add_argument("--json", action="store_true", help="print one JSON document")
 
     bench = sub.add_parser("bench", help="measure speed")
-    bsub = bench.add_subparsers(dest="bench", required=True)
+    bsub = bench.add_subparsers(dest="bench", metavar="WHAT")
     bs = bsub.add_parser("solver", help="microseconds per avatar-frame at several batch sizes")
-    bs.add_argument("--solver", choices=SOLVERS, default=DEFAULT_SOLVER)
-    bs.add_argument("--avatars", type=_positive_ints, default=[1, 10, 100])
-    bs.add_argument("--max-iterations", type=int, default=None)
-    bs.add_argument("--seconds", type=float, default=2.0, help="time spent per batch size")
-    bs.add_argument("--json", action="store_true")
+    bs.add_argument("--solver", choices=SOLVERS, default=DEFAULT_SOLVER,
+                    help="the inverse kinematics solver")
+    bs.add_argument("--avatars", type=_positive_ints, default=[1, 10, 100],
+                    help="batch sizes to measure, comma-separated (default: 1,10,100)")
+    bs.add_argument("--max-iterations", type=arg.positive_int, default=None,
+                    help="iteration limit per chain (default: the solver's own)")
+    bs.add_argument("--seconds", type=arg.positive_float, default=2.0,
+                    help="time spent per batch size")
+    bs.add_argument("--json", action="store_true", help="print one JSON document")
     bp = bsub.add_parser("protocol", help="wire sizes, quantization error, codec timings")
-    bp.add_argument("--json", action="store_true")
+    bp.add_argument("--json", action="store_true", help="print one JSON document")
     br = bsub.add_parser("render", help="ms per frame of the viewer (software GL here)")
-    br.add_argument("--avatars", type=int, default=16)
-    br.add_argument("--size", default="1280x720", help="WIDTHxHEIGHT")
-    br.add_argument("--frames", type=int, default=120)
-    br.add_argument("--out", type=Path, default=None, help="save the last frame as PNG")
-    br.add_argument("--json", action="store_true")
+    br.add_argument("--avatars", type=arg.positive_int, default=16, help="avatars drawn")
+    br.add_argument("--size", type=arg.size, default="1280x720", help="WIDTHxHEIGHT in pixels")
+    br.add_argument("--frames", type=arg.positive_int, default=120, help="frames to draw")
+    br.add_argument("--out", type=arg.out_file, default=None, help="save the last frame as PNG")
+    br.add_argument("--json", action="store_true", help="print one JSON document")
     bv = bsub.add_parser("server", help="players and spectators one server sustains")
     bv.add_argument("--counts", type=_positive_ints, default=[4, 8, 16, 24, 32, 48, 64],
-                    help="players (= spectators) to try, in order")
-    bv.add_argument("--seconds", type=float, default=4.0, help="length of each step")
+                    help="players (= spectators) to try, in order "
+                         "(default: 4,8,16,24,32,48,64)")
+    bv.add_argument("--seconds", type=arg.positive_float, default=4.0,
+                    help="length of each step")
     bv.add_argument("--no-helper", dest="helper", action="store_false",
                     help="the server solves alone (see demo --no-helper)")
-    bv.add_argument("--json", action="store_true")
+    bv.add_argument("--json", action="store_true", help="print one JSON document")
     bu = bsub.add_parser("startup", help="seconds the first commands take after set-up "
                          "(--version, serve until listening, eval of the built-in clip)")
     bu.add_argument("--runs", type=_positive_ints, default=[5],
                     help="fresh processes per command (default: 5)")
-    bu.add_argument("--json", action="store_true")
+    bu.add_argument("--json", action="store_true", help="print one JSON document")
+    for child in arg.subparsers(p):  # the global options may follow the command too
+        child.add_argument("--log-level", choices=arg.LOG_LEVELS, default=argparse.SUPPRESS,
+                           help="as posecast --log-level")
+        child.set_defaults(show_help=child.print_help)
     return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    if args.command is None or (args.command == "bench" and args.bench is None):
+        args.show_help()
+        return 0
+    _configure_logging(args.command, args.log_level)
+    try:
+        return _command(args)
+    except KeyboardInterrupt:  # Ctrl-C where no command handles it (e.g. while compiling)
+        print(f"posecast {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+def _configure_logging(command: str, level_name: str | None) -> None:
+    """Diagnostics go through logging to stderr: from info up for serve (its log of who
+    joins and leaves), from warning up for the others, whose results go to stdout."""
+    level = getattr(logging, (level_name or ("info" if command == "serve" else "warning"))
+                    .upper())
+    logging.basicConfig(format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+                        if command == "serve" else
+                        f"posecast {command}: %(levelname)s: %(message)s")
+    logging.getLogger().setLevel(level)
+    # websockets' own "connection open/closed" lines name nobody: ours do (server.app)
+    logging.getLogger("websockets").setLevel(logging.DEBUG if level <= logging.DEBUG
+                                             else logging.WARNING)
+    logging.getLogger("numba").setLevel(logging.WARNING)  # its debug output is the compiler's
+
+
+def _command(args: argparse.Namespace) -> int:
     notice = CompileNotice().install()  # a command that must compile kernels says so
     atexit.register(notice.close)
     if args.command == "warm":
@@ -184,7 +266,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "bench" and args.bench == "render":
         from posecast.client.viewer.bench import bench_render, format_render_table
 
-        width, height = _size(args.size)
+        width, height = args.size
         result = bench_render(args.avatars, width, height, args.frames, out=args.out)
         print(json.dumps(result) if args.json else format_render_table(result))
         return 0
@@ -204,49 +286,60 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 2
 
 
-def _size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise SystemExit(f"posecast: --size expects WIDTHxHEIGHT, got {text!r}") from None
-    if not (16 <= w <= 8192 and 16 <= h <= 8192):
-        raise SystemExit(f"posecast: --size {text!r} is out of range (16..8192)")
-    return w, h
-
-
 def _view(args: argparse.Namespace) -> int:
-    import asyncio
-
     from posecast.client.connection import SessionError
-    from posecast.client.viewer import (
-        GLUnavailableError,
-        Mode,
-        NoDisplayError,
-        ViewerStats,
-        ViewMode,
-        run_headless_viewer,
-        run_window_viewer,
-    )
+    from posecast.client.console import view_summary
+    from posecast.client.viewer import GLUnavailableError, NoDisplayError
 
-    width, height = _size(args.size)
-    mode, view = Mode(args.mode), ViewMode(args.view)
-    stats: ViewerStats
+    watched: list[Spectator] = []
     try:
-        if args.headless:
-            stats = asyncio.run(run_headless_viewer(
-                args.server, args.room, args.frames or 100, args.out, width, height,
-                interval_ms=1000.0 / args.fps, mode=mode, view=view,
-                max_rate_hz=args.max_rate))
-        else:
-            stats = asyncio.run(run_window_viewer(
-                args.server, args.room, width, height, fps=args.fps, mode=mode, view=view,
-                max_rate_hz=args.max_rate, frames=args.frames, screenshot=args.screenshot))
-    except (NoDisplayError, GLUnavailableError, SessionError) as err:
+        stats, signum = asyncio.run(_view_live(args, watched))
+    except (NoDisplayError, GLUnavailableError) as err:
         return _fail("view", err)
-    except KeyboardInterrupt:
-        return 130
-    print(json.dumps(stats.as_json()))
-    return 0
+    except SessionError as err:
+        return _fail("view", _session_words(err))
+    spectator = watched[0].stats if watched else None
+    if args.json:
+        print(json.dumps(stats.as_json() if stats is not None else {}))
+    else:
+        for line in view_summary(stats, spectator, args.out if args.headless else None):
+            print(line)
+    return 128 + signum if signum else 0
+
+
+async def _view_live(args: argparse.Namespace, watched: list[Spectator]
+                     ) -> tuple[ViewerStats | None, int]:
+    """The viewer, with a word on stderr about where it joined and whom it waits for,
+    until its frames are done, its window closes or a signal stops it."""
+    from posecast.client.connection import stop_task
+    from posecast.client.console import StatusLine, report_spectator, run_until_signal
+    from posecast.client.viewer import Mode, ViewMode, run_headless_viewer, run_window_viewer
+
+    status = StatusLine("posecast view")
+    stop = asyncio.Event()
+    reporters: list[asyncio.Task[None]] = []
+
+    def on_spectator(spectator: Spectator) -> None:
+        watched.append(spectator)
+        reporters.append(asyncio.create_task(report_spectator(spectator, status)))
+
+    width, height = args.size
+    mode, view = Mode(args.mode), ViewMode(args.view)
+    run = (run_headless_viewer(args.server, args.room, args.frames or 100, args.out, width,
+                               height, interval_ms=1000.0 / args.fps, mode=mode, view=view,
+                               max_rate_hz=args.max_rate, stop=stop,
+                               on_spectator=on_spectator)
+           if args.headless else
+           run_window_viewer(args.server, args.room, width, height, fps=args.fps, mode=mode,
+                             view=view, max_rate_hz=args.max_rate, frames=args.frames,
+                             screenshot=args.screenshot, stop=stop,
+                             on_spectator=on_spectator))
+    try:
+        return await run_until_signal(run, stop)
+    finally:
+        for task in reporters:
+            await stop_task(task)
+        status.clear()
 
 
 def _fail(command: str, message: object) -> int:
@@ -254,13 +347,15 @@ def _fail(command: str, message: object) -> int:
     return 1
 
 
-def _serve(args: argparse.Namespace) -> int:
-    import asyncio
-    import logging
+def _session_words(err: SessionError) -> str:
+    """'cannot reach URL: why' when no websocket opened; else the session's own line
+    (the server's reason when it refused the join)."""
+    return str(err) if err.reached else f"cannot reach {err.url}: {err.reason}"
 
+
+def _serve(args: argparse.Namespace) -> int:
     from posecast.server.app import Session, install_fast_loop, run_server
 
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     install_fast_loop()
     session = Session(solver=args.solver, busy=args.busy_poll,
                       helper=None if args.helper else False)
@@ -273,41 +368,58 @@ def _serve(args: argparse.Namespace) -> int:
 
 
 def _play(args: argparse.Namespace) -> int:
-    import asyncio
-
     from posecast.client.connection import SessionError
+    from posecast.client.console import player_summary
     from posecast.client.player import Player
     from posecast.client.sources import open_source
     from posecast.client.sources.base import SourceError
     from posecast.solver.readers.errors import FormatError
 
     try:
-        source = open_source(args.source, args.devices, loop=args.loop)
+        source = open_source(args.source, args.devices, loop=args.loop, offset=args.offset)
     except (SourceError, FormatError) as err:
         return _fail("play", err)
     delay = args.calibrate_in if args.calibrate_in is not None else (
         3.0 if args.source == "openvr" else 0.0)
-    player = Player(args.server, args.room, args.name, source, token=args.token)
     try:
-        stats = asyncio.run(_play_live(player, delay, args.seconds))
+        player = Player(args.server, args.room, args.name, source, token=args.token)
+        signum = asyncio.run(_play_live(player, delay, args.seconds, args.source))
     except SessionError as err:
-        return _fail("play", err)
-    except KeyboardInterrupt:
-        return 130
+        return _fail("play", _session_words(err))
     finally:
         source.close()
-    print(f"sent {stats.frames_sent} frames in {stats.seconds:.1f} s"
-          + (f"; server errors: {dict(stats.errors)}" if stats.errors else ""))
-    return 0
+    print(player_summary(player.stats))
+    return 128 + signum if signum else 0
 
 
-async def _play_live(player: Player, delay: float, seconds: float | None) -> PlayerStats:
+async def _play_live(player: Player, delay: float, seconds: float | None,
+                     source: str) -> int:
+    """Stream with a word on stderr about where it joined and a progress line, until
+    the source or the time ends or a signal stops it (its number is returned)."""
+    from posecast.client.connection import stop_task
+    from posecast.client.console import StatusLine, report_player, run_until_signal
+
+    status = StatusLine("posecast play")
+    stop = asyncio.Event()
+    reporter = asyncio.create_task(report_player(player, status, source))
+    try:
+        _, signum = await run_until_signal(_calibrate_and_stream(player, delay, seconds, stop),
+                                           stop)
+    finally:
+        await stop_task(reporter)
+        status.clear()
+    return signum
+
+
+async def _calibrate_and_stream(player: Player, delay: float, seconds: float | None,
+                                stop: asyncio.Event) -> None:
     """Count the player into the T-pose, then stream; Enter on a terminal recalibrates."""
-    import asyncio
-
     for left in range(math.ceil(delay), 0, -1):
         print(f"stand in a T-pose, arms out sideways: calibrating in {left} s", flush=True)
-        await asyncio.sleep(min(1.0, delay - (left - 1)))
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(stop.wait(), min(1.0, delay - (left - 1)))
+        if stop.is_set():
+            return
     loop = asyncio.get_running_loop()
     interactive = sys.stdin.isatty()
     if interactive:
@@ -317,7 +429,7 @@ async def _play_live(player: Player, delay: float, seconds: float | None) -> Pla
             player.recalibrate()
         loop.add_reader(sys.stdin.fileno(), recalibrate)
     try:
-        return await player.run(seconds)
+        await player.run(seconds, stop)
     finally:
         if interactive:
             loop.remove_reader(sys.stdin.fileno())
@@ -327,8 +439,6 @@ def _demo(args: argparse.Namespace) -> int:
     from posecast.client.demo import run_demo
     from posecast.client.latency import format_latency_table
 
-    if args.players < 0 or args.spectators < 0 or args.seconds <= 0:
-        return _fail("demo", "players and spectators must be >= 0 and seconds > 0")
     result = run_demo(args.players, args.spectators, args.seconds, solver=args.solver,
                       render=args.render, render_mode=args.render_mode,
                       busy=None if args.busy_poll else False,
@@ -336,10 +446,7 @@ def _demo(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(result.as_json()))
     else:
-        print(f"{result.players} players, {result.spectators} spectators, "
-              f"{result.seconds:g} s: sent {result.frames_sent}, solved "
-              f"{result.frames_solved}, delivered {result.frames_delivered} avatar-frames "
-              f"(dropped {result.frames_dropped})")
+        print(result.format_counts())
         print(format_latency_table(result.latency.summary(), result.latency.counts()))
     return 0
 

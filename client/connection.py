@@ -72,11 +72,13 @@ SYNC_INTERVAL = 1.0
 class SessionError(Exception):
     """A session could not start or ended unasked; ``str()`` is one line for the user."""
 
-    def __init__(self, url: str, reason: str, code: str | None = None) -> None:
+    def __init__(self, url: str, reason: str, code: str | None = None,
+                 reached: bool = True) -> None:
         super().__init__(f"{url}: {reason}")
         self.url = url
         self.reason = reason
         self.code = code  # the server's ErrorCode when it refused us, else None
+        self.reached = reached  # False: no websocket to the server opened at all
 
 
 def _connect_reason(exc: BaseException) -> str:
@@ -143,7 +145,8 @@ async def open_session(url: str, hello: Hello, *, timeout: float = OPEN_TIMEOUT,
                            close_timeout=CLOSE_TIMEOUT, proxy=None,
                            create_connection=TimestampedConnection)
     except (OSError, InvalidURI, InvalidHandshake, TimeoutError) as exc:
-        raise SessionError(url, _connect_reason(exc)) from None
+        raise SessionError(url, _connect_reason(exc),
+                           reached=isinstance(exc, InvalidHandshake)) from None
     try:
         welcome = await _handshake(url, ws, hello, timeout)
     except BaseException:  # SessionError, or a cancel mid-handshake: do not leak the socket

@@ -121,6 +121,10 @@ def test_bad_file_through_the_real_command(tmp_path: Path) -> None:
 
 
 def test_missing_file_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["eval", str(tmp_path / "nope.csv")]) == 1
-    err = capsys.readouterr().err
-    assert "nope.csv" in err and "Traceback" not in err
+    # refused with the other bad arguments, before any file is scored
+    with pytest.raises(SystemExit) as exit_info:
+        main(["eval", str(builtin_motion_path()), str(tmp_path / "nope.csv")])
+    assert exit_info.value.code == 2
+    captured = capsys.readouterr()
+    assert captured.err.count("\n") == 1 and "nope.csv" in captured.err
+    assert "Traceback" not in captured.err and captured.out == ""

@@ -23,6 +23,7 @@ import asyncio
 import concurrent.futures
 import contextlib
 import multiprocessing as mp
+from collections.abc import Callable
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -145,9 +146,12 @@ async def run_headless_viewer(url: str, room: str, frames: int | None,
                               player: int | None = None, name: str = "viewer",
                               max_rate_hz: float | None = None, token: str | None = None,
                               timeout: float | None = None,
-                              stop: asyncio.Event | None = None) -> HeadlessStats:
+                              stop: asyncio.Event | None = None,
+                              on_spectator: Callable[[Spectator], None] | None = None,
+                              ) -> HeadlessStats:
     """Join ``room`` at ``url`` as a spectator and render ``frames`` frames (None: until
     ``stop`` or ``timeout``) to PNGs in ``out_dir``; see ``render_spectator``.
+    ``on_spectator`` gets the spectator before it connects (the CLI reports on it).
 
     Raises SessionError if the server cannot be reached or goes away, GLUnavailableError
     without EGL. The renderer is made before connecting, so a missing EGL fails fast.
@@ -156,6 +160,8 @@ async def run_headless_viewer(url: str, room: str, frames: int | None,
     renderer.warm_up()  # before connecting: no frames queue up while shaders compile
     spectator = ViewerSpectator(url, room, name, Interpolator(mode), max_rate_hz=max_rate_hz,
                                 token=token)
+    if on_spectator is not None:
+        on_spectator(spectator)
     done = asyncio.Event()
     receiving = asyncio.create_task(spectator.run(stop=done), name="posecast-view")
     receiving.add_done_callback(lambda _: done.set())  # the server went away: stop too

@@ -23,6 +23,7 @@ import asyncio
 import os
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -32,6 +33,7 @@ import numpy as np
 from PIL import Image
 
 from posecast.client.sources.base import now
+from posecast.client.spectator import Spectator
 from posecast.client.viewer.core import Viewer, ViewerStats
 from posecast.client.viewer.interpolation import Interpolator, Mode
 from posecast.client.viewer.renderer import Renderer
@@ -204,9 +206,13 @@ async def run_window_viewer(url: str, room: str, width: int = 1280, height: int 
                             view: ViewMode = ViewMode.ORBIT, name: str = "viewer",
                             max_rate_hz: float | None = None, token: str | None = None,
                             frames: int | None = None,
-                            screenshot: str | Path | None = None) -> ViewerStats:
-    """``posecast view``: a window on ``room`` at ``url`` until it is closed (or
-    ``frames`` frames were shown; ``screenshot`` saves the last one).
+                            screenshot: str | Path | None = None,
+                            stop: asyncio.Event | None = None,
+                            on_spectator: Callable[[Spectator], None] | None = None,
+                            ) -> ViewerStats:
+    """``posecast view``: a window on ``room`` at ``url`` until it is closed, ``stop``
+    is set, or ``frames`` frames were shown (``screenshot`` saves the last one).
+    ``on_spectator`` gets the spectator before it connects (the CLI reports on it).
 
     Raises NoDisplayError (one line, pointing to --headless) where no window can be
     opened, SessionError if the server cannot be reached or goes away.
@@ -214,14 +220,22 @@ async def run_window_viewer(url: str, room: str, width: int = 1280, height: int 
     window = Window(width, height, f"posecast: {room} at {url}")
     spectator = ViewerSpectator(url, room, name, Interpolator(mode), max_rate_hz=max_rate_hz,
                                 token=token)
+    if on_spectator is not None:
+        on_spectator(spectator)
     done = asyncio.Event()
     receiving = asyncio.create_task(spectator.run(stop=done), name="posecast-view")
     receiving.add_done_callback(lambda _: done.set())
+    relay = None
+    if stop is not None:
+        relay = asyncio.create_task(stop.wait())
+        relay.add_done_callback(lambda _: done.set())
     try:
         stats = await window.run(SpectatorScene(spectator), fps, stop=done, view=view,
                                  frames=frames, screenshot=screenshot)
     finally:
         done.set()
+        if relay is not None:
+            relay.cancel()
         window.close()
         await receiving  # raises its SessionError, if any
     return stats
