@@ -290,7 +290,7 @@ class Command:
 def _status(err: str) -> list[str]:
     """stderr without the compile notice a cold kernel cache may add."""
     return [line for line in err.splitlines() if line.strip()
-            and not line.startswith(("posecast: compiling", " "))]
+            and not line.startswith(("posecast: compil", " "))]
 
 
 def _closed_port() -> int:
