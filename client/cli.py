@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import atexit
 import contextlib
 import json
 import logging
@@ -207,11 +206,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.show_help()
         return 0
     _configure_logging(args.command, args.log_level)
+    notice = CompileNotice().install()  # a command that must compile kernels says so
     try:
-        return _command(args)
+        return _command(args, notice)
     except KeyboardInterrupt:  # Ctrl-C where no command handles it (e.g. while compiling)
         print(f"posecast {args.command}: interrupted", file=sys.stderr)
         return 130
+    finally:  # process-wide: tests call main() many times, each with its own stderr
+        notice.close()
+        notice.uninstall()
 
 
 def _configure_logging(command: str, level_name: str | None) -> None:
@@ -229,9 +232,7 @@ def _configure_logging(command: str, level_name: str | None) -> None:
     logging.getLogger("numba").setLevel(logging.WARNING)  # its debug output is the compiler's
 
 
-def _command(args: argparse.Namespace) -> int:
-    notice = CompileNotice().install()  # a command that must compile kernels says so
-    atexit.register(notice.close)
+def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
     if args.command == "warm":
         print(f"kernels ready in {warm_kernels(notice):.1f} s")
         return 0

@@ -30,13 +30,13 @@ class CompileNotice(event.Listener):
         self.stream = stream or sys.stderr
         self.live = self.stream.isatty()
         self.compiled = 0
-        self._depth = 0  # a kernel's callees compile inside its own event
+        self._depth = 0
         self._started: float | None = None
         self._status = ""
         self.step = ""  # what runs now, when warm_kernels drives it
 
     def on_start(self, event: event.Event) -> None:
-        self._depth += 1
+        self._depth += 1  # numba's own helpers and a kernel's callees compile inside it
         if self._started is None:
             self._started = time.monotonic()
             self.stream.write(f"posecast: {NOTICE} (about a minute; `posecast warm` "
@@ -45,6 +45,8 @@ class CompileNotice(event.Listener):
 
     def on_end(self, event: event.Event) -> None:
         self._depth -= 1
+        if self._depth > 0:
+            return
         self.compiled += 1
         if self._started is not None:
             self.show(f"  {self.step}{self.compiled} kernels compiled, "
