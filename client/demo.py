@@ -74,9 +74,7 @@ def pin_to_cores(role: str, cores: Cores) -> None:
     sending the rest of the burst (as frames from separate machines would come in); on a
     core shared with the players it could only start when their whole burst was sent.
     Spectators decode every batch the moment the server writes it; on the server's core
-    their wake-ups preempted it in the middle of its 16 writes. Measured with 16 players
-    and 16 spectators, 10 s runs, p50 / p99 server (ms): players on the server's core
-    1.19 / 2.09, this placement 0.72 / 1.64.
+    their wake-ups preempted it in the middle of its 16 writes (docs/performance.md).
     """
     if len(cores) < 2:
         return

@@ -1,4 +1,4 @@
-"""Measurements of the protocol for bench commands and the README: sizes and timings.
+"""Measurements of the protocol for bench commands and the docs: sizes and timings.
 
 Nothing here prints; callers (``posecast bench``, tests) format the results. Timings time
 each call on its own with ``perf_counter_ns`` and report the median, which a busy

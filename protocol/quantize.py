@@ -42,11 +42,10 @@ MAX_ANGLE_ERROR_DEG = math.degrees(MAX_ANGLE_ERROR_RAD)
 _MAX_KEPT_SQUARES = 0.75 + 1e-3
 
 
-# Compiled (numba): a batch of 16 avatars has ~850 rotations; numpy needed ~60 us each
-# way for them (a dozen whole-array passes), a single compiled pass takes a few, and the
-# server encodes and every spectator decodes each batch. Explicit signatures compile (or
-# load from the cache) at import, not at the first frame: a first-call compile would stall
-# a spectator's first ~100 ms of frames.
+# Compiled (numba): the server encodes and every spectator decodes ~850 rotations a batch
+# of 16, where numpy's dozen whole-array passes cost far more than one compiled pass.
+# Explicit signatures compile (or load from the cache) at import: a compile at the first
+# frame would stall a spectator's first frames.
 @njit(types.void(types.Array(types.float64, 2, "C", readonly=True), types.uint8[::1]),
       cache=True)
 def _quantize(q: NDArray[np.float64], out: NDArray[np.uint8]) -> None:

@@ -83,11 +83,8 @@ class Session:
         # before serving: a first join must not wait for the compiled solver (and the
         # helper) to load
         self.avatars.warm_up()
-        # solve on the event loop's own thread: a batch of a room is tens of avatars, and
-        # waking a worker thread costs ~1 ms in a VM, more than it saves; scale out over
-        # cores with processes instead. Rechecked with the worker free to run on the
-        # demo's other core (idle while a burst is solved): p50 server 0.61-0.76 against
-        # 0.53-0.58 ms with one thread, three alternated pairs
+        # solve on the event loop's own thread: waking a worker thread costs more in a VM
+        # than it saves on a batch of tens of avatars; scale out with processes instead
         numba.set_num_threads(1)
 
     def room(self, name: str) -> Room:

@@ -1,15 +1,14 @@
 """Busy polling: a server on a core of its own never sleeps and keeps its path warm.
 
-An idle server blocks in the kernel until the next burst of tracker frames. On this VM
-the core then halts and other work runs on it, so the burst starts with a wake-up and
-finds the server's code and data gone from the caches: the same 16 frames took twice as
-long 11 ms after the last burst (90 Hz) as back to back (decode, stage, solve and encode:
-1190 against 485 us median, one core). With busy polling the event loop never blocks.
-Between bursts it re-runs the path of the latest tracker frame on a twin avatar (decode,
-stage, solve, encode; a third of it at a time, every WARM_PHASE_INTERVAL_S, so that a
-frame that arrives waits ~30 us at most), which keeps that path in the caches; reads are
-taken without a wake-up. While a burst is open it waits like an idle server: the burst's
-own passes of the loop decide when it ends (``server.room``).
+An idle server blocks in the kernel until the next burst of tracker frames; on a VM the
+core then halts and other work evicts the server's code and data from the caches, so
+every burst runs cold, at about twice its back-to-back cost. With busy polling the event
+loop never blocks. Between bursts it re-runs the path of the latest tracker frame on a
+twin avatar (decode, stage, solve, encode; a third of it at a time, every
+WARM_PHASE_INTERVAL_S, so that a frame that arrives waits ~30 us at most), which keeps
+that path in the caches; reads are taken without a wake-up. While a burst is open it
+waits like an idle server: the burst's own passes of the loop decide when it ends
+(``server.room``).
 
 It costs a whole core, all the time: use it where the server has a core to itself.
 """
@@ -31,11 +30,8 @@ from posecast.solver.rig import Rig
 log = logging.getLogger("posecast.server")
 
 TWIN = 0  # the twin's avatar id in its own solver
-# a phase of the warm-up every 0.3 ms (a whole frame's path every ~1 ms), polling only in
-# between. Run back to back, the warm-up slowed the other core's processes (on this VM
-# the two cores seem to share one physical core): with 36 players and 36 spectators the
-# spectators' process fell behind by 0.2-0.3 s (p99 network-to-spectator 166 / 297 ms in
-# two 8 s runs, 6.7 / 4.1 ms at this interval); with 16 + 16 both measured alike
+# a phase of the warm-up every 0.3 ms, polling in between: run back to back it slowed
+# the processes on the other core (on a VM the two may share a physical core)
 WARM_PHASE_INTERVAL_S = 0.0003
 
 

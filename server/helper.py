@@ -62,7 +62,6 @@ class SolveHelper:
         self._thread.start()
         # only once it runs compiled code, without the GIL, may it lose its core: a
         # thread that loses its core holding the GIL stops the server's loop with it
-        # (the first batch once waited 75 ms for it)
         while not self.control[READY] and self._thread.is_alive():
             time.sleep(0.0001)
         with contextlib.suppress(OSError):

@@ -68,29 +68,9 @@ class SharedBatch:
 
 Delivery = tuple[SharedBatch, int]  # a batch and the index of one avatar in it
 
-# the longest a burst may keep a batch open; 16 players' frames reach the server within
-# ~0.6 ms of each other on loopback (capture spread in a batch: 0.56-0.70 ms p50), and
-# one batch of 16 costs a quarter of four batches of 4 (one solve call, one message per
-# spectator). At 0.4 ms most bursts split in two and every spectator got both halves:
-# 0.7 ms took the 16 + 16 demo from ~1.6 to ~1.3 batches a tick and its p99
-# capture-to-spectator from 3.5-3.9 to 3.1-3.3 ms, for a p99 server of 1.3-1.5 instead
-# of 1.2-1.3 ms (three 20 s runs each); 1.0 ms gave no more. Rechecked once clients
-# read before they decode: 0.4 ms still gives the lower server tail and the higher
-# end-to-end one (alternated 20 s runs: p99 server 1.18 / 1.25 / 1.13 against 1.47 /
-# 1.24 / 1.38 ms, capture-to-spectator 3.29 / 3.58 / 3.11 against 3.09 / 2.52 / 2.92).
-# With busy polling and bursts kept open for the players due (Cadence), the window only
-# ends the slow bursts. 0.9 ms kept more of them whole: six alternated pairs of 10 s runs
-# of the 16 + 16 demo gave p99 capture-to-spectator 2.67 against 2.88 ms (median) and
-# the same p99 server; but larger rooms' first frames then wait longer, and `bench
-# server` failed its 2 ms at 24 players (2.03 / 2.22 ms, against 1.85 / 1.80 ms and 32
-# players sustained at 0.7). 0.55 ms was worse on both (four pairs of the demo: p99
-# server 1.35-1.58 against 1.22-1.47 ms). Shorter windows split every burst in two:
-# 0.25 ms met the server's 1 ms in quiet 10 s runs of the demo (p99 0.81-1.01 against
-# 1.21-1.46 ms at 0.7, round robin) but each spectator got two messages a tick, and
-# p99 capture-to-spectator rose by 0.1-1.3 ms (2.3-4.1 against 2.1-3.3); in `bench
-# server` it was 4.7-4.9 against 2.4-3.0 ms at 16 + 16, and at 32 + 32 the spectators
-# fell 0.26-1.2 s behind. 0.35 ms gave a mix of one and two batches, worse than either.
-# End-to-end latency is what a player sees: 0.7 stays
+# the longest a burst may keep a batch open: long enough that 16 players' frames (spread
+# over ~0.6 ms on loopback) make one batch, one message per spectator; short enough that
+# a large room's first frames do not wait long (docs/performance.md, "Bursts")
 COALESCE_MAX_S = 0.0007
 
 
@@ -235,15 +215,8 @@ class Room:
 
     # ------------------------------------------------------------------ solving
     def solve_pending(self) -> None:
-        # the whole burst in one call. Solving the frames staged so far while the burst
-        # is still open was tried (alternated 10 s demo runs): on passes of the loop that
-        # read nothing it rarely ran (in 23% of the bursts; the server reads a frame about
-        # every pass) and moved p99 server both ways (1.19 / 0.95 / 0.93 / 1.21 against
-        # 1.07 / 1.13 / 0.97 / 1.01 ms); on every pass it put the reads behind the players
-        # (p50 capture-to-server 0.29 against ~0.1 ms) and p99 server went to 1.38 ms.
-        # Again with the cheaper frame path: in place a one-avatar solve takes ~62 us (20
-        # hot) and reading a frame ~22 us of the ~33 between frames, so the reads still
-        # fell behind (p99 server 1.45-1.62 against 1.29-1.37 ms, two pairs)
+        # the whole burst in one call: solving its frames while it is still open puts the
+        # reads of the rest of the burst behind (docs/performance.md, "Bursts")
         closes = self._scheduled and self.bursts is not None
         self._scheduled = False
         try:

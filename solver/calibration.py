@@ -29,11 +29,10 @@ from posecast.solver.kernels import bone_targets
 from posecast.solver.motion import DRIVING_DEVICES
 from posecast.solver.rig import EFFECTORS, Rig, global_pose
 
-# device -> the bone (role) it is mounted on. A forearm tracker is strapped to the
-# forearm, whatever the template's elbow says: in the recordings it keeps its distance to
-# the wrist (std 6-11 mm), while a nearest-bone rule put it on the upper arm in 7 of 10
-# files (model elbow beyond the real one) and lost the elbow's bend. A knee tracker is
-# mounted at the knee joint and rides around it (KNEE_BEND_SHARE).
+# device -> the bone (role) it is mounted on. A forearm tracker is on the forearm whatever
+# the template's elbow says (it keeps its distance to the wrist; a nearest-bone rule put
+# it on the upper arm and lost the elbow's bend). A knee tracker is mounted at the knee
+# joint and rides around it (KNEE_BEND_SHARE).
 DEVICE_BONES: dict[str, str] = {
     "head": "head", "hip": "pelvis", "left_hand": "hand_l", "right_hand": "hand_r",
     "left_foot": "foot_l", "right_foot": "foot_r",
@@ -46,73 +45,36 @@ EFFECTOR_DEVICES = ("head", "hip", "left_hand", "right_hand", "left_foot", "righ
 # Priors of the fit, in body coordinates (x left, y up, z forward), metres
 EYE_FROM_HEAD_JOINT = np.array([0.0, 0.06, 0.09])  # HMD origin sits at the eyes
 # How far a held controller's origin lies past the wrist, along the arm (metres): it sets
-# the arm length that calibration fits to the controllers. Measured over the Vive
-# recordings: 0.08 (the first guess) -> 0.12 took the forearm trackers from 39.7 to
-# 35.6 mm (punching 65/65 -> 45/53; elbow_flexion's right forearm 47 -> 53), held-out
-# 41.8 -> 39.7 mm, mean 17.2 -> 16.4 mm; 0.11-0.13 land within 0.3 mm of each other.
-# Too long an arm kept the model's elbow straighter than the real one when reaching.
+# the arm length fitted to the controllers. Too long an arm keeps the model's elbow
+# straighter than the real one when reaching (docs/performance.md).
 CONTROLLER_BEYOND_WRIST = 0.12
 
 METHODS = ("fit", "uniform")
-GRIP_TWIST = 0.0  # radians; see README: the recordings give no clear winner
+GRIP_TWIST = 0.0  # radians; the recordings give no clear winner
 # How far above the template's hip joints (metres, before scaling) the legs pivot in the
-# frame of the hip tracker. The belt tracker turns with the lower back, not the pelvis,
-# so the point of its frame that stays at a fixed distance from a thigh-mounted tracker
-# (a functional joint-centre fit over the Vive recordings with knee flexion: 8-12 cm up,
-# every clip) lies well above the anatomical joint. Raising the pivot (thighs lengthened
-# to match) took Vive mean 20.6 -> 18.9 mm, held-out 49.5 -> 45.8 mm (knees in sitting
-# 135/141 -> 107/109 mm); 5 and 13 cm gave 19.3 and 19.1 mm. With the knees raised too
-# (KNEE_PIVOT_RAISE) 6 cm fits best: held-out 33.3 mm against 35.0 at 3 cm and 33.9 at
-# 9 cm. BVH is unaffected (no calibration there).
+# hip tracker's frame: the belt tracker turns with the lower back, not the pelvis, so the
+# pivot it sees lies above the anatomical joint (docs/performance.md).
 HIP_PIVOT_RAISE = 0.06
 # How far above the template's knees (metres, before scaling) the legs bend as the knee
-# trackers see it; the shins are lengthened and the thighs shortened to match, the
-# ankles stay. In the frame of a knee tracker the ankle (placed by the foot tracker)
-# moves on a sphere of radius 495-505 mm (fit residual 1-4 mm, kicking, knee_flexion,
-# squats; sitting 550) centred 8-12 cm (scaled) above the template's knee along the
-# thigh, where the template's shin is 400 mm: the strap on the soft tissue of the thigh
-# turns as if the knee bent there. With the template's knee the model thigh stayed ~10
-# deg less flexed than the tracker in every flexed clip (the knee trackers 55-90 mm too
-# low). Swept with the other knee constants: 0.10 / 0.12 / 0.14 / 0.16 give held-out
-# 33.9 / 33.3 / 33.0 / 33.3 mm (0: 38.3). It moves where the avatar's knee bends: the
-# price of a thigh that points where the tracker on it does.
+# trackers see it: their strap on the thigh's soft tissue turns as if the knee bent there.
+# Shins lengthen and thighs shorten to match, the ankles stay; the avatar's knee bends there.
 KNEE_PIVOT_RAISE = 0.12
 # How the arm is rolled in the T-pose (radians): the upper arm turned outwards (elbow
-# crease up) and the forearm pronated as much, palm down either way; the hand and its
-# controller do not tell these apart, the forearm trackers do. With a forearm tracker
-# following only part of the pronation (FOREARM_TWIST_SHARE) and the template's roll
-# (crease forward) it was 20-60 deg off in twist, one sign per side, whenever the hands
-# left the T-pose (the hand turns 20-60 deg against the tracker there in every clip but
-# shoulder_abduction and walking). Roll 80-100 deg with a share of 0.5-0.7 were all
-# within 0.7 mm of each other on the forearm trackers.
+# crease up) and the forearm pronated as much, palm down either way. The hand does not
+# tell these apart; the forearm trackers do, and disagree with the template's roll.
 ARM_ROLL = float(np.radians(90.0))
-# Share of the forearm's twist that the strap of a forearm tracker follows: strapped
-# just below the elbow, it turns with the skin, not with the wrist (in hand_pronation the
-# tracker turns ~0.3-0.4 as far as the hand against the elbow). Roll 90 deg, share 0.5:
-# Vive held-out 45.8 -> 43.7 mm, rotation 9.1 -> 5.7 deg (0.6: 43.5 mm, 6.1 deg).
+# Share of the forearm's twist that a forearm tracker follows: strapped just below the
+# elbow, it turns with the skin, not with the wrist.
 FOREARM_TWIST_SHARE = 0.5
 TWIST_SHARE_DEVICES = ("left_forearm", "right_forearm")
-# Share of the knee's bend that a knee tracker's position follows. Strapped on the thigh
-# a hand above the knee, it turns with the thigh, but as the knee flexes the strap rides
-# around the joint with the soft tissue under it: its position is taken about the knee
-# in the thigh's frame turned by this share of the knee's bend away from the straight
-# leg, its rotation stays the thigh's. Read off these recordings, like the constants
-# above: 0 (rigid on the thigh) -> 0.25 took the knee trackers from 50.4 to 46.2 mm
-# (sitting 107/109 -> 86/91, kicking, knee_flexion and squats 8-10 mm better each, the
-# clips with little flexion 2-6 mm worse), Vive held-out 43.7 -> 41.8 mm; 0.2 and 0.3
-# give 42.0 and 41.8. Following the
-# knee's rotation too made the rotation error worse (5.7 -> 6.4 deg): the strap turns
-# with the thigh.
+# Share of the knee's bend that a knee tracker's position follows: strapped on the thigh
+# above the knee, it turns with the thigh but rides around the joint with the soft tissue
+# as the knee flexes. Its rotation stays the thigh's (following the knee was worse).
 KNEE_BEND_SHARE = 0.25
 BEND_SHARE_DEVICES = ("left_knee", "right_knee")
 # How far (radians) a knee tracker turns outwards about the hip-ankle line as the knee
-# bends, growing with the bend up to KNEE_TURN_FULL_BEND. In every clip with flexion the
-# knee trackers sit 6-15 deg further out than a hinge knee lined up with the foot puts
-# them (knees splayed over the feet). The optical mocap shows no such turn of the bones
-# (turning the solved knees out made BVH MPJRE 9.8 -> 10.2 deg), so it is the tracker's,
-# on the thigh's soft tissue, and lives in its mount, not in the solver. 8 deg over
-# 60 deg of bend: held-out 38.3 -> 33.3 mm with the raised knees (sitting 58/77 -> 28/34
-# mm); 10 and 12 deg give 33.4 and 33.6, full at 30 or 90 deg of bend 33.3 and 33.4.
+# bends, growing with the bend up to KNEE_TURN_FULL_BEND. Mocap shows no such turn of the
+# bones, so it is the strap's, and lives in the tracker's mount, not in the solver.
 KNEE_TURN_OUT = float(np.radians(8.0))
 KNEE_TURN_FULL_BEND = float(np.radians(60.0))
 

@@ -6,15 +6,13 @@ Why compiled (numba): a solve walks joint chains and iterates, sequential work o
 batched drivers in ``solver/ik/`` loop over avatars inside compiled code. The numpy
 versions in ``solver/rotations.py`` are the reference: the tests check these against them.
 
-Why tuples, row indices and inlining (measured on the built-in walk): a small
-``np.empty`` costs ~17 ns (malloc and free), and arrays or views passed to a compiled call
-cost atomic reference counting (a Jacobian column took 49 ns called, 12 ns inlined); the
+Why tuples, row indices and inlining: a small ``np.empty`` costs ~17 ns (malloc and
+free), and arrays or views passed to a compiled call cost atomic reference counting; the
 two were about 40% of a solve. So the inner loops (FK, Jacobian columns, steps and
 clamps per joint) hold quaternions as tuples of floats, which live in registers, index
 the (J, 4) arrays by joint instead of taking row views, and the kernels called per joint
 or per iteration are inlined (``inline="always"``). The closed-form steps of the
-solvers (``solver/ik/analytic.py``) are written the same way: they allocated ~80 small
-arrays per avatar, and without them a batch of 16 solves ~10% faster, bit for bit alike.
+solvers (``solver/ik/analytic.py``) are written the same way.
 
 Conventions: quaternions x, y, z, w; a joint's local rotation is ``pre * D * post`` with
 D its deviation from the canonical pose (see ``solver/rig.py``).
@@ -32,9 +30,9 @@ EPS = 1e-12
 
 # The batch drivers solve avatars in parallel (numba prange: one avatar per task, each
 # with its own work arrays, so results are bit for bit those of a serial loop) from this
-# many avatars on; below it, starting the worker threads costs more than it saves. With
-# one thread (a server sets that) they run as one serial loop instead: a parallel loop
-# on one thread still allocates every avatar's work arrays (16 avatars: 238 -> 226 us)
+# many avatars on (below it, starting the worker threads costs more than it saves). With
+# one thread (a server sets that) they run as one serial loop: a parallel loop on one
+# thread still allocates every avatar's work arrays.
 PARALLEL_MIN_AVATARS = 2
 
 Quat = tuple[float, float, float, float]

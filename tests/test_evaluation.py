@@ -63,9 +63,8 @@ def test_bandai_static_root_is_dropped_and_the_body_kept(shared_data: SharedData
                                   "bandai1_run_active_001.bvh"])
 def test_bvh_eval_follows_a_body_that_travels(shared_data: SharedData, name: str) -> None:
     # The avatar is the performer's own skeleton driven by six of its joints as 6-DoF
-    # trackers: its error is the solver's, CMU-like, however far the body walks. Before
-    # the static joint_Root was folded into the Hips, the avatar dragged that world-fixed
-    # joint along with it and the error grew with the distance walked (190 mm, 165 mm).
+    # trackers: its error is the solver's, CMU-like, however far the body walks (the
+    # static joint_Root is folded into the Hips, not dragged along as a world-fixed joint).
     result = evaluate_bvh(read_bvh(shared_data(f"mocap/{name}")))
     assert "joint_Root" not in result.position_error_mm
     assert result.mean_error_mm < 25.0

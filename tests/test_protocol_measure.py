@@ -64,7 +64,7 @@ def test_time_calls_measures_what_it_times() -> None:
 
 
 def test_tracker_frame_decode_is_within_a_loose_budget() -> None:
-    # DESIGN's budget is 20 us (measured ~12 us median); 3x slack keeps a busy CI machine
+    # the budget is 20 us (docs/performance.md); 3x slack keeps a busy CI machine
     # green while a real regression (a Python loop per device, say) still fails
     for model in (False, True):
         timing = time_decode_tracker_frame(runs=3000, model=model)

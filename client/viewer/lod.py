@@ -33,9 +33,8 @@ from posecast.solver.readers.gltf import SkinnedMesh
 # cell sizes of the levels, metres; 0 is the full mesh. Triangles of the MakeHuman mesh:
 # 26.8k, 13.0k, 9.8k, 7.3k, 5.6k, 4.3k, 2.3k
 DEFAULT_CELLS = (0.0, 0.01, 0.015, 0.02, 0.025, 0.03, 0.045)
-# the triangles a frame may draw on a software rasterizer: with everything else a viewer
-# frame does, 16 avatars then take ~10.5 ms p50 at 1280x720 on this 2-core machine (the
-# bench), leaving headroom for its noise within a 16 ms frame
+# the triangles a frame may draw on a software rasterizer: 16 avatars then fit a 16 ms
+# frame with headroom (`posecast bench render`, docs/performance.md)
 SOFTWARE_BUDGET = 60_000
 # on a GPU triangles are cheap: enough for ~75 full-detail avatars
 HARDWARE_BUDGET = 2_000_000

@@ -27,12 +27,10 @@ from posecast.solver.ik.dls import solve_dls_batch
 from posecast.solver.ik.paper import solve_paper_batch
 from posecast.solver.rig import Rig
 
-# numba's OpenMP workers spin after each parallel solve, by default for up to
-# milliseconds: a server solving once a frame would keep a core busy for nothing, and on
-# a busy machine a spinning worker that loses its core stalls the next solve (measured
-# with another process busy: 80 us per avatar-frame at 100 avatars, 11 with this
-# setting). Spinning for a few microseconds still catches back-to-back solves. Read when
-# numba starts its threads, at the first parallel solve; a value already set wins.
+# numba's OpenMP workers spin after each parallel solve, by default for milliseconds: a
+# server solving once a frame would keep a core busy for nothing, and a spinning worker
+# that loses its core stalls the next solve. A few microseconds still catch back-to-back
+# solves. Read when numba starts its threads; a value already set wins.
 os.environ.setdefault("GOMP_SPINCOUNT", "1000")
 
 SOLVERS = ("analytic", "dls", "paper")
@@ -53,7 +51,7 @@ class SolverOptions:
 
 
 DEFAULTS: dict[str, dict[str, float]] = {
-    # tuned on the Vive recordings: see README, "Solvers"
+    # tuned on the Vive recordings
     "analytic": {"max_iterations": 4, "damping": 0.02},
     "dls": {"max_iterations": 20, "damping": 0.05},
     "paper": {"max_iterations": 100, "damping": 1e-3, "step_limit": STEP_LIMIT},

@@ -55,24 +55,18 @@ from posecast.solver.kernels import (
     trotate,
 )
 
-# share of the arm's turn away from the T-pose that the clavicle takes. Measured on the mocap
-# files the clavicles stay within ~5 deg of neutral in walks and bows; a share of 0.2
-# dropped the shoulder 13-63 mm with the arms down (Vive mean 28.7 -> 23.2 mm, BVH MPJPE
-# 14.0 -> 12.2 mm at 0). Kept as a knob for an elevation-only rule above the horizontal.
+# share of the arm's turn away from the T-pose that the clavicle takes: in the mocap the
+# clavicles stay within ~5 deg of neutral, and a share dropped the shoulder with the arms
+# down. Kept as a knob for an elevation-only rule above the horizontal.
 CLAVICLE_SHARE = 0.0
 # Elbow bends (radians) over which a nearly straight arm's swivel hands over from keeping
 # the forearm's twist (the upper arm rolls with the hand) to the bend's own swivel (see
-# solve_limb). 5..30 and 15..60 deg came within 0.6 mm of 10..45 on the forearm trackers.
+# solve_limb); the exact range matters little.
 BEND_LO = math.radians(10.0)
 BEND_HI = math.radians(45.0)
 # Share of its angle from the lowest point of the elbow circle by which a bent arm's
-# elbow is turned down from where a neutral wrist puts it. Over the Vive recordings the
-# swivel that best places the forearm trackers pulls the elbow towards its lowest point
-# by ~30% of that angle (correlation -0.72 over the frames with the elbow bent more than
-# 30 deg); the optical mocap agrees up to ~10% only. Shares 0 / 0.05 / 0.1 / 0.15 / 0.2
-# / 0.3: BVH MPJPE 10.47 / 10.39 / 10.38 / 10.44 / 10.58 / 11.0 mm, MPJRE 9.80 / 9.77 /
-# 9.76 / 9.79 / 9.84 / 10.03 deg; Vive forearm trackers 35.6 / 34.8 / 34.0 / 33.3 /
-# 32.6 / 31.6 mm. 0.1 is the best for the bones and better for the trackers too.
+# elbow is turned down from where a neutral wrist puts it: the Vive forearm trackers ask
+# for more, the optical mocap for about this much (docs/performance.md).
 ELBOW_DOWN_SHARE = 0.1
 
 
@@ -196,11 +190,8 @@ def _swivel(Gu, offsets, pre, post, canon, mid, end, tq, dvec, nx, ny, nz,
 
     Leg: the knee's hinge axis lines up with the foot's flexion axis (no ankle
     abduction). Arm: the point of the elbow circle nearest to where a neutral wrist
-    would put the elbow, i.e. the wrist bent as little as it can be. (Demanding a wrist
-    without deviation, with the neutral elbow only choosing between the two exact
-    solutions, was worse on all but one clip (kicking, by 0.3 mm): real wrists deviate,
-    and that error moved the elbow by up to 200 mm (CMU 131); Vive mean 23.1 -> 20.6 mm,
-    held-out 55.4 -> 49.5 mm, BVH MPJPE 12.0 -> 10.5 mm, MPJRE 10.2 -> 9.8 deg.)"""
+    would put the elbow, i.e. the wrist bent as little as it can be (demanding no wrist
+    deviation at all is worse: real wrists deviate, and the elbow moved with them)."""
     if not arm:
         ex = (1.0, 0.0, 0.0)
         x_end = trotate(tmul(tq, tconj(row4(post, end))), ex)  # the foot's flexion axis
@@ -343,8 +334,7 @@ def _arm_out_of_reach(offsets, gp, chains, tg, eps):
         reach = 0.0
         for j in (ch[2], ch[3]):
             reach += math.sqrt(offsets[j, 0] ** 2 + offsets[j, 1] ** 2 + offsets[j, 2] ** 2)
-        # beyond the straight arm only: a 10 mm margin ran the fallback on 22% of the
-        # Vive frames instead of 14%, to no gain
+        # beyond the straight arm only: a margin ran the fallback more often, to no gain
         if math.sqrt(dist) > reach:
             return True
     return False

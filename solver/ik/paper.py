@@ -15,7 +15,7 @@ Choices where the paper is silent, following its authors' released code:
 - each iteration acts on the error clamped to a norm of ``step_limit`` (the authors'
   code clamps it as dMax, after Buss and Kim). Its value is not published; 5 mm
   reproduces the shape and scale of the paper's Table 2 (lag 185 ms at 5 iterations
-  down to 7 ms at 100) on the authors' recordings, see README;
+  down to 7 ms at 100) on the authors' recordings (docs/performance.md);
 - limits are clamped on the swing/twist angles of ``solver/rig.py``.
 """
 

@@ -39,11 +39,8 @@ MAX_BATCH = (1 << FIELD) - 1
 SEQ_MOD = 1 << 22  # batch numbers wrap here (CLAIM stays positive)
 HELPER, CALLER = 1, 2
 # how long the caller waits for the avatars the helper holds before it solves them
-# itself: spins of the wait loop (a pause and a look at DONE), ~25 ns each here, so
-# ~10 us. Waiting on saves at most the rest of the helper's avatar (~20 us in place);
-# a helper that lost its core costs the wait. At ~0.3 ms `bench server` sustained 32
-# players instead of 48: with 40 and more clients on its core the helper often loses it
-# holding an avatar
+# itself: spins of the wait loop (~25 ns each, so ~10 us). Waiting saves at most the rest
+# of one avatar; a helper that lost its core costs the whole wait, so it is short.
 TAKEOVER_SPINS = 400
 
 

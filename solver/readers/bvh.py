@@ -146,11 +146,8 @@ def read_bvh(path: str | Path, scale: float | None = None) -> Motion:
     if not np.all(np.isfinite(translations)):
         raise FormatError(src, None, f"translations overflow at scale {unit}")
     # The skeleton's offsets are the first motion frame's translations, not the OFFSET
-    # lines. Measured on the Bandai files: the position channels of every joint below
-    # Hips equal its OFFSET to within 1e-5 cm and never change (peak-to-peak under
-    # 1e-10 cm in every file), joint_Root never moves, but Hips' channels are the hips'
-    # position over the floor: its OFFSET says (0.04, 94.0, 0.06) cm while the channels
-    # travel up to 8 m (bandai1_walk) and their height varies by 0.2-83 cm.
+    # lines: in the Bandai files every joint's channels below Hips equal its OFFSET, but
+    # Hips' channels are the hips' position over the floor, far from its OFFSET.
     skeleton = Skeleton(names, parents, translations[first].copy(), tips * unit)
     return Motion(skeleton=skeleton, rotations=rotations, translations=translations,
                   fps=_fps(header.frame_time), source=src, first_frame=first)
