@@ -447,10 +447,7 @@ def _demo(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(result.as_json()))
     else:
-        print(f"{result.players} players, {result.spectators} spectators, "
-              f"{result.seconds:g} s: sent {result.frames_sent}, solved "
-              f"{result.frames_solved}, delivered {result.frames_delivered} avatar-frames "
-              f"(dropped {result.frames_dropped})")
+        print(result.format_counts())
         print(format_latency_table(result.latency.summary(), result.latency.counts()))
     return 0
 

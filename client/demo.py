@@ -12,23 +12,28 @@ from __future__ import annotations
 import asyncio
 import multiprocessing as mp
 import os
-from collections.abc import Coroutine
+from collections.abc import Callable, Coroutine
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any, TypeVar
 
 from posecast.client.builtin import builtin_motion_path
+from posecast.client.connection import SessionError
 from posecast.client.latency import LatencyRecorder
 from posecast.client.player import PlayerStats, Ticker, run_player
 from posecast.client.sources.bvh_source import BvhSource
-from posecast.client.spectator import SpectatorStats, run_spectator
+from posecast.client.spectator import Spectator, SpectatorStats
 from posecast.client.viewer.headless import HeadlessViewerProcess
 from posecast.client.viewer.interpolation import Mode
+from posecast.protocol import AvatarRoster
 
 ROOM = "demo"
 T = TypeVar("T")
-DRAIN_SECONDS = 0.5  # after the players stop, for the last frames to reach spectators
+# generous: on a loaded machine, joining (the server's own start included) and the
+# server's stop (its drain, then every close handshake) may take seconds
+JOIN_TIMEOUT = 60.0
+STOP_TIMEOUT = 60.0
 HEADSET_HZ = 90.0  # an HTC Vive's rate: players send what their headset samples
 
 
@@ -37,23 +42,61 @@ class DemoResult:
     players: int
     spectators: int
     seconds: float
+    # tracker frames the players sent: each is exactly one of solved, superseded,
+    # discarded, rejected (the server's counts, read once it stopped)
     frames_sent: int
     frames_solved: int
-    frames_delivered: int
-    frames_dropped: int
+    frames_delivered: int  # received, summed over the spectators
+    frames_dropped: int  # offered to a spectator but never sent to it
     batches: int  # solves the server ran: frames_solved / batches = avatars per batch
     rejected: dict[str, int]
     latency: LatencyRecorder
     rendered: int = 0  # PNG frames the viewer wrote (with --render)
+    frames_superseded: int = 0  # a newer frame of the same player came before its solve
+    frames_discarded: int = 0  # unsolved: its player left first
+    frames_rejected: int = 0  # refused by the server with an Error
+    viewer: bool = False  # --render: one more spectator, whose drops frames_dropped counts
 
     def as_json(self) -> dict[str, object]:
         return {"players": self.players, "spectators": self.spectators,
                 "seconds": round(self.seconds, 3), "frames_sent": self.frames_sent,
                 "frames_solved": self.frames_solved,
                 "frames_delivered": self.frames_delivered,
-                "frames_dropped": self.frames_dropped, "batches": self.batches,
+                "frames_dropped": self.frames_dropped,
+                "frames_superseded": self.frames_superseded,
+                "frames_discarded": self.frames_discarded,
+                "frames_rejected": self.frames_rejected, "batches": self.batches,
                 "rejected": self.rejected, "frames_rendered": self.rendered,
                 "latency_ms": self.latency.summary()}
+
+    def format_counts(self) -> str:
+        """The counts for a reader: what each means, and whether the two identities the
+        demo's test asserts hold."""
+        rows = [("sent", self.frames_sent, "tracker frames the players sent"),
+                ("solved", self.frames_solved, "solved by the server"),
+                ("superseded", self.frames_superseded, "a player's newer frame arrived "
+                 "before the older one was solved; the newer one is solved"),
+                ("discarded", self.frames_discarded, "not solved: its player left first"),
+                ("rejected", self.frames_rejected, "refused by the server with an error"),
+                ("delivered", self.frames_delivered, "received, summed over the spectators"),
+                ("dropped", self.frames_dropped, "not sent to a spectator: a newer frame of "
+                 "the avatar replaced it in its outbox (latest wins)")]
+        width = max(len(str(n)) for _, n, _ in rows)
+        lines = [f"{self.players} players, {self.spectators} spectators, "
+                 f"{self.seconds:g} s; avatar-frames:"]
+        lines += [f"  {name:<10} {n:>{width}}  {what}" for name, n, what in rows]
+        gap = self.frames_sent - (self.frames_solved + self.frames_superseded
+                                  + self.frames_discarded + self.frames_rejected)
+        lines.append("  sent = solved + superseded + discarded + rejected: "
+                     + ("yes" if gap == 0 else f"no, {gap:+d}"))
+        if self.viewer:  # its frames are not in delivered, its drops are in dropped
+            lines.append("  (dropped includes the --render viewer's)")
+        else:
+            gap = self.frames_solved * self.spectators - (self.frames_delivered
+                                                          + self.frames_dropped)
+            lines.append(f"  solved x {self.spectators} spectators = delivered + dropped: "
+                         + ("yes" if gap == 0 else f"no, {gap:+d}"))
+        return "\n".join(lines)
 
 
 Cores = tuple[int, ...]
@@ -94,7 +137,8 @@ def _serve_process(pipe: Connection, solver: str, cores: Cores, busy: bool,
         loop = asyncio.get_running_loop()
         loop.add_reader(pipe.fileno(), stop.set)  # any message from the parent: stop
         session = Session(solver=solver, busy=busy, helper=helper)
-        await run_server("127.0.0.1", 0, session, stop, ready=pipe.send)
+        await run_server("127.0.0.1", 0, session, stop, ready=pipe.send,
+                         drain_timeout=STOP_TIMEOUT / 2)
         return session.metrics.as_json()
 
     pipe.send(asyncio.run(main()))
@@ -112,6 +156,7 @@ class EmbeddedServer:
                                     daemon=True)
         self.port = 0
         self.metrics: dict[str, object] = {}
+        self._stopped = False
 
     def __enter__(self) -> EmbeddedServer:
         self._process.start()
@@ -125,13 +170,23 @@ class EmbeddedServer:
     def url(self) -> str:
         return f"ws://127.0.0.1:{self.port}"
 
+    def stop(self) -> None:
+        """Ask the server to stop: it solves what is pending, lets the spectators'
+        outboxes empty, closes every connection, then reports its metrics."""
+        if not self._stopped:
+            self._stopped = True
+            self._pipe.send("stop")
+
     def __exit__(self, *exc: object) -> None:
-        self._pipe.send("stop")
-        if self._pipe.poll(30):
+        self.stop()
+        if self._pipe.poll(STOP_TIMEOUT):
             self.metrics = self._pipe.recv()
         self._process.join(10)
         if self._process.is_alive():
             self._process.kill()
+        if not self.metrics and exc[0] is None:  # no counts: do not report zeros
+            raise RuntimeError(f"the embedded server did not report its metrics within "
+                               f"{STOP_TIMEOUT:g} s of being told to stop")
 
 
 def _spot(i: int, per_row: int = 4, spacing: float = 1.5) -> tuple[float, float]:
@@ -162,17 +217,43 @@ def _players_process(pipe: Connection, url: str, players: int, seconds: float,
     pipe.send([(p.frames_sent, dict(p.errors)) for p in stats])
 
 
+class _DemoSpectator(Spectator):
+    """A headless spectator that tells when it is in the room and reads until the server
+    closes the connection: it then has every frame the server handed to its socket."""
+
+    def __init__(self, url: str, name: str) -> None:
+        super().__init__(url, ROOM, name)
+        # set on the first roster: the server writes it and adds the spectator to the
+        # room in one step, so every batch solved after that is offered to it
+        self.in_room = asyncio.Event()
+
+    def on_roster(self, roster: AvatarRoster) -> None:
+        super().on_roster(roster)
+        self.in_room.set()
+
+    async def run_until_closed(self) -> SpectatorStats:
+        try:
+            await self.run()
+        except SessionError:  # the server closed the connection: the demo is over
+            if self.session is None:  # it never joined
+                raise
+        finally:
+            self.in_room.set()  # for whoever waits: it will not join any more
+        return self.stats
+
+
 async def run_clients(url: str, players: int, spectators: int, seconds: float,
                       motion: Path, render: Path | None = None,
-                      render_mode: str = "interpolate", cores: Cores = ()
+                      render_mode: str = "interpolate", cores: Cores = (),
+                      stop_server: Callable[[], None] = lambda: None,
                       ) -> tuple[int, list[SpectatorStats], dict[str, Any]]:
     """Spectators here, players in a process of their own: a player's capture must not
     wait behind spectators decoding (on separate machines it would not). Returns the
-    frames the players sent and the spectators' stats."""
-    stop_spectators = asyncio.Event()
-    spectator_tasks = [asyncio.create_task(run_spectator(url, ROOM, f"spectator {i + 1}",
-                                                         stop=stop_spectators))
-                       for i in range(spectators)]
+    frames the players sent and the spectators' stats. Once the players are done it
+    calls ``stop_server``; the spectators end when the server closes their connections
+    (``EmbeddedServer.stop``)."""
+    watchers = [_DemoSpectator(url, f"spectator {i + 1}") for i in range(spectators)]
+    spectator_tasks = [asyncio.create_task(w.run_until_closed()) for w in watchers]
     ctx = mp.get_context("spawn")
     pipe, child = ctx.Pipe()
     process = ctx.Process(target=_players_process, args=(child, url, players, seconds,
@@ -183,7 +264,13 @@ async def run_clients(url: str, players: int, spectators: int, seconds: float,
     if viewer is not None:  # a viewer of its own process: drawing holds the GIL
         await viewer.__aenter__()
     try:
-        await asyncio.sleep(1.0)  # every spectator in the room, the players' imports done
+        # every spectator in the room before the first frame, so that each is offered
+        # every batch (and the players' imports done meanwhile)
+        await asyncio.wait_for(asyncio.gather(
+            asyncio.sleep(1.0), *(w.in_room.wait() for w in watchers)), JOIN_TIMEOUT)
+        for task in spectator_tasks:
+            if task.done():
+                task.result()  # one that could not join: its SessionError
         pipe.send("go")
         loop = asyncio.get_running_loop()
         ready = asyncio.Event()
@@ -194,12 +281,14 @@ async def run_clients(url: str, players: int, spectators: int, seconds: float,
             loop.remove_reader(pipe.fileno())
         player_stats = pipe.recv()
         process.join(10)
-        await asyncio.sleep(DRAIN_SECONDS)
     finally:
         if viewer is not None:
             await viewer.__aexit__(None, None, None)
-    stop_spectators.set()
-    spectator_stats = await asyncio.gather(*spectator_tasks)
+        # the players have left; the server solves what is pending and empties the
+        # outboxes before it closes: the spectators then read up to the close
+        stop_server()
+    spectator_stats = await asyncio.wait_for(asyncio.gather(*spectator_tasks),
+                                             STOP_TIMEOUT)
     return (sum(sent for sent, _ in player_stats), list(spectator_stats),
             viewer.result if viewer is not None else {})
 
@@ -222,7 +311,7 @@ def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
             pin_to_cores("spectators", cores)  # they run here (see run_clients)
             frames_sent, spectator_stats, viewed = _run(run_clients(
                 server.url, players, spectators, seconds, motion, render, render_mode,
-                cores))
+                cores, server.stop))
     finally:
         if cores:
             os.sched_setaffinity(0, cores)
@@ -239,7 +328,11 @@ def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
         frames_dropped=int(metrics.get("frames_dropped", 0)),  # type: ignore[call-overload]
         batches=int(metrics.get("batches", 0)),  # type: ignore[call-overload]
         rejected=dict(rejected) if isinstance(rejected, dict) else {},
-        latency=latency, rendered=len(viewed.get("files", [])))
+        latency=latency, rendered=len(viewed.get("files", [])),
+        frames_superseded=int(metrics.get("frames_superseded", 0)),  # type: ignore[call-overload]
+        frames_discarded=int(metrics.get("frames_discarded", 0)),  # type: ignore[call-overload]
+        frames_rejected=int(metrics.get("frames_rejected", 0)),  # type: ignore[call-overload]
+        viewer=render is not None)
 
 
 def _run(coro: Coroutine[Any, Any, T]) -> T:

@@ -52,6 +52,10 @@ log = logging.getLogger("posecast.server")
 
 HELLO_TIMEOUT = 5.0  # seconds a new connection has to say who it is
 RECONNECT_GRACE = 30.0  # seconds a disconnected player's avatar waits for its token
+# on stop, how long the open bursts and the spectators' outboxes get to empty before the
+# connections close (a spectator that stopped reading would hold the stop forever)
+DRAIN_TIMEOUT = 2.0
+DRAIN_POLL_S = 0.001
 # websockets' own frame limit: far above any valid message, so that an oversized one still
 # reaches protocol/ and gets a clear Error (TOO_LARGE) instead of a bare close
 WEBSOCKET_MAX_SIZE = 1 << 20
@@ -162,11 +166,15 @@ class Session:
                     msg = decode_client(data)
                     if isinstance(msg, TrackerFrame):
                         self.metrics.frames_received += 1
-                        if not room.is_calibrated(avatar.avatar_id):
-                            raise ProtocolError(ErrorCode.NOT_CALIBRATED,
-                                                "send a calibrate message (T-pose) before "
-                                                "tracker frames")
-                        room.submit(avatar.avatar_id, msg, t_received)
+                        try:
+                            if not room.is_calibrated(avatar.avatar_id):
+                                raise ProtocolError(ErrorCode.NOT_CALIBRATED,
+                                                    "send a calibrate message (T-pose) "
+                                                    "before tracker frames")
+                            room.submit(avatar.avatar_id, msg, t_received)
+                        except (ProtocolError, ValueError):  # replied to below
+                            self.metrics.frames_rejected += 1
+                            raise
                     elif isinstance(msg, Calibrate):
                         room.calibrate(avatar, msg.roles, msg.poses)
                         if self.busy is not None:
@@ -252,9 +260,26 @@ class Session:
             pass
         finally:
             room.spectators.pop(conn_id, None)
+            outbox.close()  # what it still holds counts as dropped
+            task = spectator.task
+            task.cancel()
+            await asyncio.wait([task])  # and so does a send this cuts short
+            if not task.cancelled():
+                task.exception()  # retrieved: a send to a closed connection fails
             self.metrics.frames_dropped += outbox.dropped
-            outbox.close()
-            spectator.task.cancel()
+
+    # ------------------------------------------------------------------ stopping
+    async def drain(self, timeout: float = DRAIN_TIMEOUT) -> bool:
+        """Wait until no burst is open and every spectator's outbox has sent what it
+        holds: then each frame counted as solved was delivered to every spectator or
+        counted as dropped. False if ``timeout`` passed first (a stalled spectator)."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        while not all(room.settled for room in self.rooms.values()):
+            if loop.time() >= deadline:
+                return False
+            await asyncio.sleep(DRAIN_POLL_S)
+        return True
 
     # ------------------------------------------------------------------ both
     async def _common(self, ws: ServerConnection, msg: object, t_received: float,
@@ -277,9 +302,11 @@ class Session:
 async def run_server(host: str, port: int, session: Session | None = None,
                      stop: asyncio.Event | None = None,
                      ready: Callable[[int], None] | None = None,
-                     handle_signals: bool = False) -> Session:
-    """Serve until ``stop`` is set (or SIGINT/SIGTERM with ``handle_signals``), closing
-    every connection cleanly; ``ready(port)`` once listening (port 0 picks a free one)."""
+                     handle_signals: bool = False,
+                     drain_timeout: float = DRAIN_TIMEOUT) -> Session:
+    """Serve until ``stop`` is set (or SIGINT/SIGTERM with ``handle_signals``), then
+    drain (``Session.drain``) and close every connection cleanly; ``ready(port)`` once
+    listening (port 0 picks a free one)."""
     session = session or Session()
     stop = stop or asyncio.Event()
     loop = asyncio.get_running_loop()
@@ -303,8 +330,11 @@ async def run_server(host: str, port: int, session: Session | None = None,
                 poller.cancel()
                 with contextlib.suppress(asyncio.CancelledError):
                     await poller
+        await session.drain(drain_timeout)
         server.close(close_connections=True)
         await server.wait_closed()
+    for room in session.rooms.values():  # a burst opened while the connections closed
+        room.discard_pending()
     session.avatars.close()
     return session
 

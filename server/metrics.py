@@ -10,17 +10,26 @@ from dataclasses import dataclass, field
 @dataclass
 class Metrics:
     connections: int = 0
+    # every tracker frame received ends as exactly one of the four below (while its
+    # burst is open, none yet; a stopped server has none open)
     frames_received: int = 0
     frames_superseded: int = 0  # a player's newer frame replaced an unsolved one
+    frames_discarded: int = 0  # unsolved: its avatar left or recalibrated, or shutdown
+    frames_rejected: int = 0  # answered with an Error (not calibrated, solver refused)
     frames_solved: int = 0
     batches: int = 0
-    frames_delivered: int = 0  # avatar-frames handed to spectator sockets
-    frames_dropped: int = 0  # avatar-frames a slow spectator never got (latest-wins)
+    # every solved avatar-frame offered to a spectator is exactly one of these two:
+    # handed to its socket, or never sent (a newer one of the avatar replaced it in the
+    # outbox, the avatar left, or the connection closed first)
+    frames_delivered: int = 0
+    frames_dropped: int = 0
     rejected: Counter[str] = field(default_factory=Counter)  # by ErrorCode
 
     def as_json(self) -> dict[str, object]:
         return {"connections": self.connections, "frames_received": self.frames_received,
                 "frames_superseded": self.frames_superseded,
+                "frames_discarded": self.frames_discarded,
+                "frames_rejected": self.frames_rejected,
                 "frames_solved": self.frames_solved, "batches": self.batches,
                 "frames_delivered": self.frames_delivered,
                 "frames_dropped": self.frames_dropped, "rejected": dict(self.rejected)}

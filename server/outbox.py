@@ -26,12 +26,16 @@ class Outbox(Generic[Frame]):
         self._closed = False
         self._sending = False
         self._last = -1e9  # loop time of the last send
-        self.delivered = 0  # frames handed to the socket
-        self.dropped = 0  # frames replaced by a newer one of the same avatar before sending
+        # every frame offered is exactly one of: pending, delivered (handed to the
+        # socket) or dropped (replaced by a newer one of its avatar, forgotten, or still
+        # held when the outbox closed or a send failed)
+        self.delivered = 0
+        self.dropped = 0
 
     def offer(self, frames: dict[int, Frame]) -> None:
         """Queue the newest frame of each avatar; never blocks."""
         if self._closed:
+            self.dropped += len(frames)
             return
         for avatar_id, frame in frames.items():
             if avatar_id in self._pending:
@@ -51,14 +55,22 @@ class Outbox(Generic[Frame]):
 
     def forget(self, avatar_id: int) -> None:
         """An avatar left: do not send its last frame after its removal notice."""
-        self._pending.pop(avatar_id, None)
+        if self._pending.pop(avatar_id, None) is not None:
+            self.dropped += 1
 
     @property
     def pending(self) -> int:
         return len(self._pending)
 
+    @property
+    def idle(self) -> bool:
+        """Nothing held and nothing being sent."""
+        return not self._pending and not self._sending
+
     def close(self) -> None:
         self._closed = True
+        self.dropped += len(self._pending)  # never to be sent
+        self._pending.clear()
         self._wake.set()
 
     async def run(self) -> None:
@@ -82,6 +94,9 @@ class Outbox(Generic[Frame]):
             self._sending = True
             try:
                 await self._send(frames)
+            except BaseException:  # the connection went (or the task was cancelled)
+                self.dropped += len(frames)
+                raise
             finally:
                 self._sending = False
             self.delivered += len(frames)

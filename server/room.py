@@ -138,7 +138,8 @@ class Room:
         avatar.info = AvatarInfo(avatar_id=avatar.avatar_id, display_name=avatar.display_name,
                                  joint_names=sk.names, parents=tuple(int(p) for p in sk.parents),
                                  rest_offsets=cal.offsets)
-        self._pending.pop(avatar.avatar_id, None)  # frames solved before it are stale
+        if self._pending.pop(avatar.avatar_id, None) is not None:  # of the old T-pose
+            self.metrics.frames_discarded += 1
         self.broadcast_roster(AvatarRoster(avatars=(avatar.info,)))
         return cal
 
@@ -208,7 +209,8 @@ class Room:
     def remove_avatar(self, avatar_id: int) -> None:
         self.avatars.pop(avatar_id, None)
         self.solver.remove(avatar_id)
-        self._pending.pop(avatar_id, None)
+        if self._pending.pop(avatar_id, None) is not None:
+            self.metrics.frames_discarded += 1
         for s in self.spectators.values():
             s.outbox.forget(avatar_id)
         self.broadcast_roster(AvatarRoster(removed=(avatar_id,)))
@@ -229,6 +231,7 @@ class Room:
     def _solve_and_deliver(self) -> None:
         calibrated, slot = self.solver.calibrations, self.solver.slot_order
         pending = [(a, f, t) for a, (f, t) in self._pending.items() if a in calibrated]
+        self.metrics.frames_discarded += len(self._pending) - len(pending)
         self._pending.clear()
         if not pending:
             return
@@ -275,6 +278,17 @@ class Room:
     @property
     def empty(self) -> bool:
         return not self.avatars and not self.spectators
+
+    @property
+    def settled(self) -> bool:
+        """No burst open and no spectator's outbox holding or sending a frame."""
+        return not self._scheduled and not self._pending and all(
+            s.outbox.idle for s in self.spectators.values())
+
+    def discard_pending(self) -> None:
+        """The server stopped with a burst open: its frames will never be solved."""
+        self.metrics.frames_discarded += len(self._pending)
+        self._pending.clear()
 
 
 async def send_deliveries(send_bytes: Callable[[bytes], Awaitable[None]],

@@ -59,9 +59,9 @@ def test_vive_real_files(shared_data: SharedData, name: str, frames: int,
 
 def test_vive_reads_the_largest_file_fast(shared_data: SharedData) -> None:
     path = shared_data("vive/shoulder_abduction.csv")  # 28,501 lines
-    start = time.perf_counter()
+    start = time.thread_time()  # CPU time: a loaded machine stretches only the wall clock
     read_vive(path)
-    assert time.perf_counter() - start < 1.0
+    assert time.thread_time() - start < 1.0
 
 
 # ------------------------------------------------------------------- real BVH files
@@ -144,9 +144,9 @@ def test_bvh_bandai_static_root_and_moving_hips(shared_data: SharedData) -> None
 
 def test_bvh_reads_the_largest_file_fast(shared_data: SharedData) -> None:
     path = shared_data("mocap/bandai1_dance-short_normal_001.bvh")  # 2.4 MB
-    start = time.perf_counter()
+    start = time.thread_time()  # CPU time: a loaded machine stretches only the wall clock
     read_bvh(path)
-    assert time.perf_counter() - start < 1.0
+    assert time.thread_time() - start < 1.0
 
 
 # ------------------------------------------------------------ synthetic Vive files

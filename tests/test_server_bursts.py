@@ -14,7 +14,8 @@ from posecast.server.avatars import AvatarSolver
 from posecast.server.busy import OpenBursts, WarmPath
 from posecast.server.cadence import MAX_PERIOD_S, Cadence
 from posecast.server.metrics import Metrics
-from posecast.server.room import Avatar, Room
+from posecast.server.outbox import Outbox
+from posecast.server.room import Avatar, Delivery, Room, Spectator
 from posecast.solver.motion import ViveRecording
 
 PERIOD = 1 / 90
@@ -122,7 +123,8 @@ def _burst(session: Session, rec: ViveRecording, window: float, due_2: float,
 def test_a_burst_waits_for_the_players_due_with_it(session: Session,
                                                    recording: ViveRecording) -> None:
     # player 2 ticks with player 1 (due 0.3 ms after it): the burst waits for its frame
-    assert _burst(session, recording, window=0.05, due_2=0.0003, early=0.0) == ({2}, 0, 0)
+    # (a window no loaded machine outlasts: player 2's frame ends the burst here)
+    assert _burst(session, recording, window=60.0, due_2=0.0003, early=0.0) == ({2}, 0, 0)
     # player 2 is out of step (due 5 ms later): player 1's frame is solved at once
     assert _burst(session, recording, window=0.002, due_2=0.005, early=0.0) == (set(), 1, 1)
 
@@ -141,7 +143,7 @@ def test_a_burst_with_every_players_frame_in_is_solved_on_the_next_pass(
     for, so the burst is solved on the next pass (a frame arriving in the pass would
     otherwise keep it open one pass more), well within its window."""
     async def main() -> tuple[int, int, int]:
-        room = _room(session, recording, window=0.05)
+        room = _room(session, recording, window=60.0)  # not what ends a burst here
         room.submit(1, _frame(recording, 5), 1.0)
         room.submit(2, _frame(recording, 6), 1.0)
         await asyncio.sleep(0)  # one pass: the burst's check runs once
@@ -154,6 +156,40 @@ def test_a_burst_with_every_players_frame_in_is_solved_on_the_next_pass(
     assert solved_then == 1
     # player 1 alone, a frame just in: the burst stays open for a pass, then closes
     assert (batches, frames) == (1, 2)
+
+
+def test_a_room_counts_every_frame_once(session: Session, recording: ViveRecording) -> None:
+    """Each frame submitted is solved, superseded or discarded (its player recalibrated
+    or left, or the server stopped), and each solved one is delivered to a spectator or
+    dropped (here: its avatar left while the spectator's outbox held it)."""
+    rec = recording
+
+    async def main() -> tuple[dict[str, object], int, int]:
+        async def send(frames: list[Delivery]) -> None:
+            raise AssertionError("not sending in this test")
+
+        async def send_bytes(data: bytes) -> None:
+            pass
+
+        room = _room(session, rec, window=60.0)
+        outbox: Outbox[Delivery] = Outbox(send)  # its task not running: frames wait
+        room.spectators[1] = Spectator(outbox, send_bytes)
+        room.submit(1, _frame(rec, 5), 1.0)
+        room.submit(1, _frame(rec, 6), 1.0)  # supersedes 5
+        room.submit(2, _frame(rec, 7), 1.0)
+        t_pose = np.concatenate([rec.positions[0], rec.rotations[0]], axis=1)
+        room.calibrate(room.avatars[1], rec.devices, t_pose)  # discards 6
+        room.solve_pending()  # solves 7, which waits in the outbox
+        room.submit(2, _frame(rec, 8), 2.0)
+        room.remove_avatar(2)  # discards 8, and 7 leaves the outbox unsent
+        room.submit(1, _frame(rec, 9), 3.0)
+        room.discard_pending()  # the server stopped: 9 is never solved
+        return room.metrics.as_json(), outbox.delivered, outbox.dropped
+
+    metrics, delivered, dropped = asyncio.run(main())
+    assert (metrics["frames_solved"], metrics["frames_superseded"],
+            metrics["frames_discarded"]) == (1, 1, 3)  # the 5 frames submitted
+    assert (delivered, dropped) == (0, 1)
 
 
 def test_warm_path_runs_a_frame_in_three_short_phases(session: Session,

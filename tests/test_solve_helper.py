@@ -47,23 +47,34 @@ def _calibrated(session: Session, rec: ViveRecording, cores: tuple[int, ...]) ->
 def test_a_helper_gives_the_same_poses_and_takes_part(session: Session,
                                                      recording: ViveRecording) -> None:
     everywhere = tuple(range(os.cpu_count() or 1))
-    helped, alone = (_calibrated(session, recording, c) for c in (everywhere, ()))
-    try:
-        for f in range(1, 60):
-            for solver in (helped, alone):
-                for a in range(N):
-                    solver.stage(a, recording.devices, poses(recording, f + 25 * a))
-            order = list(range(N)) if f % 2 else [5, 0, 7, 2, 1, 6, 3, 4]  # any rows
-            h, a = helped.solve_staged(order), alone.solve_staged(order)
-            np.testing.assert_array_equal(h.rotations, a.rotations)
-            np.testing.assert_array_equal(h.root, a.root)
-            np.testing.assert_array_equal(h.iterations, a.iterations)
-        helper = helped.helper()
-        assert helper is not None
-    finally:
-        helped.close()
-    if len(everywhere) >= 2:  # a core was free for it while this thread solved
-        assert helper.handed > 0
+
+    def rounds() -> int:
+        """59 batches with the helper and without: the same poses. Returns the avatars
+        the helper solved."""
+        helped, alone = (_calibrated(session, recording, c) for c in (everywhere, ()))
+        try:
+            for f in range(1, 60):
+                for solver in (helped, alone):
+                    for a in range(N):
+                        solver.stage(a, recording.devices, poses(recording, f + 25 * a))
+                order = list(range(N)) if f % 2 else [5, 0, 7, 2, 1, 6, 3, 4]  # any rows
+                h, a = helped.solve_staged(order), alone.solve_staged(order)
+                np.testing.assert_array_equal(h.rotations, a.rotations)
+                np.testing.assert_array_equal(h.root, a.root)
+                np.testing.assert_array_equal(h.iterations, a.iterations)
+            helper = helped.helper()
+            assert helper is not None
+        finally:
+            helped.close()
+        return helper.handed
+
+    handed = rounds()
+    if len(everywhere) >= 2:  # a core free for it while this thread solved: it takes
+        # part (on a loaded machine its core may come only in a later round)
+        deadline = time.monotonic() + 60
+        while handed == 0 and time.monotonic() < deadline:
+            handed = rounds()
+        assert handed > 0
 
 
 @njit(nogil=True)
@@ -77,32 +88,44 @@ def _take_one_and_vanish(control: np.ndarray) -> int:
 
 def test_an_avatar_the_helper_never_finishes_is_taken_over(session: Session,
                                                           recording: ViveRecording) -> None:
-    ref = _calibrated(session, recording, ())
-    shared = _calibrated(session, recording, ())
-    for solver in (ref, shared):
-        for a in range(N):
-            solver.stage(a, recording.devices, poses(recording, 40 + 25 * a))
-    expected = ref.solve_staged(list(range(N)))
-    # the shared batch's arrays, with no helper thread: one that vanishes instead
-    control, rows = new_control(), np.zeros(N, dtype=np.int64)
     J = session.rig.skeleton.num_joints
-    own = (np.zeros(N, dtype=np.int64), np.empty((N, J, 4)), np.empty((N, 3)),
-           np.zeros(N, dtype=np.int64))
-    args = shared._analytic_args()
-    rows[:N] = np.arange(N)
     warm = new_control()
     warm[CLAIM] = 1 << FIELD  # a batch of one: compiled now, not while the batch runs
     assert _take_one_and_vanish(warm) == 0
-    taken: list[int] = []
-    thief = threading.Thread(target=lambda: taken.append(_take_one_and_vanish(control)))
-    thief.start()
-    time.sleep(0.05)  # spinning, waiting for the batch
-    handed = solve_analytic_shared(control, rows, N, *own, *args)
-    thief.join(5)
-    assert taken and 0 <= taken[0] < N  # it held one avatar...
-    assert handed == 0  # ...never handed it over, and the caller solved all eight
-    np.testing.assert_array_equal(shared._rotations[:N], expected.rotations)
-    np.testing.assert_array_equal(shared._roots[:N], expected.root)
+
+    def attempt() -> int:
+        """One batch with a helper that claims an avatar and vanishes: the caller solves
+        all eight. Returns the avatar it held (-1: it came after the caller took all,
+        which a loaded machine may make it do)."""
+        ref = _calibrated(session, recording, ())
+        shared = _calibrated(session, recording, ())
+        for solver in (ref, shared):
+            for a in range(N):
+                solver.stage(a, recording.devices, poses(recording, 40 + 25 * a))
+        expected = ref.solve_staged(list(range(N)))
+        # the shared batch's arrays, with no helper thread: one that vanishes instead
+        control, rows = new_control(), np.zeros(N, dtype=np.int64)
+        own = (np.zeros(N, dtype=np.int64), np.empty((N, J, 4)), np.empty((N, 3)),
+               np.zeros(N, dtype=np.int64))
+        args = shared._analytic_args()
+        rows[:N] = np.arange(N)
+        taken: list[int] = []
+        thief = threading.Thread(target=lambda: taken.append(_take_one_and_vanish(control)))
+        thief.start()
+        time.sleep(0.05)  # spinning, waiting for the batch
+        handed = solve_analytic_shared(control, rows, N, *own, *args)
+        thief.join(60)  # it returns once the batch is posted, whether it got one or not
+        assert taken and -1 <= taken[0] < N
+        assert handed == 0  # never handed over, and the caller solved all eight
+        np.testing.assert_array_equal(shared._rotations[:N], expected.rotations)
+        np.testing.assert_array_equal(shared._roots[:N], expected.root)
+        return taken[0]
+
+    deadline = time.monotonic() + 60
+    held = attempt()
+    while held < 0 and time.monotonic() < deadline:
+        held = attempt()
+    assert held >= 0  # it held one avatar in some attempt, and the caller took it over
 
 
 def test_the_helper_restarts_over_the_grown_arrays(session: Session,
