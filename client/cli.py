@@ -190,8 +190,8 @@ def _parser() -> argparse.ArgumentParser:
     bv.add_argument("--json", action="store_true", help="print one JSON document")
     bu = bsub.add_parser("startup", help="seconds the first commands take after set-up "
                          "(--version, serve until listening, eval of the built-in clip)")
-    bu.add_argument("--runs", type=_positive_ints, default=[5],
-                    help="fresh processes per command (default: 5)")
+    bu.add_argument("--runs", type=arg.positive_int, default=5,
+                    help="fresh processes per command")
     bu.add_argument("--json", action="store_true", help="print one JSON document")
     for child in arg.subparsers(p):  # the global options may follow the command too
         child.add_argument("--log-level", choices=arg.LOG_LEVELS, default=argparse.SUPPRESS,
@@ -281,7 +281,7 @@ def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
     if args.command == "bench" and args.bench == "startup":
         from posecast.client.bench_startup import bench_startup, format_startup_table
 
-        doc = bench_startup(args.runs[0])
+        doc = bench_startup(args.runs)
         print(json.dumps(doc) if args.json else format_startup_table(doc))
         return 0
     return 2

@@ -37,3 +37,13 @@ def test_bad_batch_sizes_are_refused(capsys: pytest.CaptureFixture[str]) -> None
         main(["bench", "solver", "--avatars", "0,x"])
     assert exit_info.value.code == 2
     assert "expected" in capsys.readouterr().err
+
+
+def test_bench_startup_times_fresh_processes(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["bench", "startup", "--runs", "1", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    commands = [r["command"] for r in doc["results"]]
+    assert [c.split()[1] for c in commands] == ["--version", "serve", "eval"]
+    for r in doc["results"]:
+        assert r["runs"] == 1 and 0.0 < r["seconds_p50"] == r["seconds_max"]
+        assert isinstance(r["compiled"], bool)
