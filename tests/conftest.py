@@ -44,6 +44,17 @@ def recording() -> ViveRecording:
     return read_vive(shared_data_path("vive/walking.csv"))
 
 
+@pytest.fixture(scope="session")
+def egl() -> None:
+    """Headless OpenGL (EGL; Mesa's llvmpipe without a GPU), or a skip that says why."""
+    from posecast.client.viewer.renderer import GLUnavailableError, create_headless_context
+
+    try:
+        create_headless_context().release()
+    except GLUnavailableError as err:
+        pytest.skip(f"no headless OpenGL: {err}")
+
+
 @contextlib.asynccontextmanager
 async def serving(session: Session) -> AsyncIterator[str]:
     """A real server for ``session`` on a free port of 127.0.0.1, for the length of the

@@ -371,16 +371,6 @@ def test_play_says_where_it_joined_and_stops_on_ctrl_c(server: str, tmp_path: Pa
     assert "joined" in join and "left" in leave
 
 
-@pytest.fixture(scope="module")
-def egl() -> None:
-    from posecast.client.viewer.renderer import GLUnavailableError, create_headless_context
-
-    try:
-        create_headless_context().release()
-    except GLUnavailableError as err:
-        pytest.skip(f"no headless OpenGL: {err}")
-
-
 def test_view_of_an_empty_room_says_it_waits_and_stops_on_ctrl_c(server: str, egl: None,
                                                                   tmp_path: Path) -> None:
     out_dir = tmp_path / "png"

@@ -22,21 +22,13 @@ from posecast.client.spectator import Spectator
 from posecast.client.viewer.core import ViewerStats
 from posecast.client.viewer.headless import HeadlessStats, render_spectator, run_headless_viewer
 from posecast.client.viewer.interpolation import Mode
-from posecast.client.viewer.renderer import BACKGROUND, GLUnavailableError, create_headless_context
+from posecast.client.viewer.renderer import BACKGROUND
 from posecast.client.viewer.window import NoDisplayError, check_display, run_window_viewer
 from posecast.server.app import Session
 
 T = TypeVar("T")
 TIMEOUT = 5.0
 W, H = 480, 270
-
-
-@pytest.fixture(scope="module")
-def egl() -> None:
-    try:
-        create_headless_context().release()
-    except GLUnavailableError as err:
-        pytest.skip(f"no headless OpenGL: {err}")
 
 
 @pytest.fixture(scope="module")
