@@ -1,0 +1,98 @@
+"""Every limit of one server process, in one place (``ServerLimits``), and the per-connection
+message budgets that enforce the rates (``Budget``).
+
+The defaults hold the figures of issue 14 (docs/architecture.md, "Limits"): a hostile
+client spoils neither its room nor anyone else's. ``posecast serve --limit NAME=VALUE``
+overrides any of them; ``Session(limits=...)`` takes them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+from posecast.protocol.validation import MAX_CLIENT_MESSAGE_BYTES
+
+
+@dataclass(frozen=True)
+class ServerLimits:
+    # websockets refuses a frame over this at its header (close 1009) instead of reading
+    # it: the protocol's largest client message plus room for an explicit too_large Error
+    max_message_bytes: int = MAX_CLIENT_MESSAGE_BYTES + 512
+    # messages websockets buffers per connection before it stops reading the socket:
+    # 16 x 4.5 KiB is all one connection can make the server hold
+    max_queue: int = 16
+    # tracker frames per second per player: a 144 Hz headset with slack for jitter
+    frames_per_s: float = 240.0
+    frame_burst: int = 60  # frames in a 0.25 s clump (the bucket refills whole)
+    # a calibration costs ~1 ms of solve and a roster broadcast to every spectator
+    calibrations_per_s: float = 1.0
+    calibration_burst: int = 3  # a player retrying a T-pose a few times
+    # rejected messages per second; once the bucket is empty the connection is closed
+    # (1008): a client that keeps erring is not worth answering
+    errors_per_s: float = 10.0
+    error_burst: int = 20
+    # a room's solve and every roster grow with its players
+    players_per_room: int = 64
+    # connected plus lingering (a leaving player's avatar waits the reconnect grace);
+    # at the cap, the oldest lingering avatar goes first
+    avatars_per_room: int = 128
+    rooms: int = 256  # each room costs a roster and solver state
+    connections: int = 1024  # file descriptors and handler tasks
+    # one venue behind one NAT fits a full room of players and viewers
+    connections_per_address: int = 128
+    # a roster is split into messages of at most this many avatars and bytes, far below
+    # a viewer's 1 MiB limit (53 joints: ~2 KB per avatar)
+    roster_avatars_per_message: int = 16
+    roster_message_bytes: int = 64 * 1024
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            # every numeric limit is a positive count, size, rate or time
+            if isinstance(value, int | float) and not value > 0:
+                raise ValueError(f"limit {f.name} must be positive, got {value!r}")
+
+    def with_text(self, pairs: list[str]) -> ServerLimits:
+        """These limits with NAME=VALUE overrides (the command line's ``--limit``); a
+        ValueError names a bad name or value in one line."""
+        types = {f.name: f.type for f in dataclasses.fields(self)}
+        changes: dict[str, int | float] = {}
+        for pair in pairs:
+            name, sep, text = pair.partition("=")
+            name = name.strip().replace("-", "_")
+            if not sep:
+                raise ValueError(f"a limit is NAME=VALUE, got {pair!r}")
+            if name not in types:
+                raise ValueError(f"unknown limit {name!r}: one of {', '.join(types)}")
+            kind = int if types[name] in (int, "int") else float
+            try:
+                changes[name] = kind(text)
+            except ValueError:
+                raise ValueError(f"limit {name} takes {'an integer' if kind is int else 'a number'}"
+                                 f", got {text!r}") from None
+        return dataclasses.replace(self, **changes)
+
+
+class Budget:
+    """A bucket of ``burst`` messages refilled whole every ``burst / per_s`` seconds: a
+    message costs one float compare and one int decrement (no allocation on the frame
+    path); the bucket being empty is the rejection."""
+
+    __slots__ = ("burst", "left", "refill_at", "window")
+
+    def __init__(self, per_s: float, burst: int) -> None:
+        self.burst = burst
+        self.window = burst / per_s
+        self.left = burst
+        self.refill_at = 0.0
+
+    def take(self, t: float) -> bool:
+        """Spend one message at time ``t`` (seconds); False when none is left."""
+        if t >= self.refill_at:
+            self.left = self.burst
+            self.refill_at = t + self.window
+        if self.left <= 0:
+            return False
+        self.left -= 1
+        return True
