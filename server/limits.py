@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Any
 
 from posecast.protocol.validation import MAX_CLIENT_MESSAGE_BYTES
 
@@ -57,7 +58,7 @@ class ServerLimits:
         """These limits with NAME=VALUE overrides (the command line's ``--limit``); a
         ValueError names a bad name or value in one line."""
         types = {f.name: f.type for f in dataclasses.fields(self)}
-        changes: dict[str, int | float] = {}
+        changes: dict[str, Any] = {}  # each converted to its field's type below
         for pair in pairs:
             name, sep, text = pair.partition("=")
             name = name.strip().replace("-", "_")
