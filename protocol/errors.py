@@ -22,6 +22,8 @@ class ErrorCode(StrEnum):
     NOT_ALLOWED = "not_allowed"  # e.g. a spectator sending tracker frames, frames before hello
     NOT_CALIBRATED = "not_calibrated"
     AUTH_FAILED = "auth_failed"
+    RATE_LIMITED = "rate_limited"  # over a per-connection message rate (server.limits)
+    FULL = "full"  # a cap of the server is reached: rooms, players, connections
     INTERNAL = "internal"
 
 
