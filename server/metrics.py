@@ -24,6 +24,9 @@ class Metrics:
     frames_delivered: int = 0
     frames_dropped: int = 0
     rejected: Counter[str] = field(default_factory=Counter)  # by ErrorCode
+    # refusals by the ServerLimits field that made them: a rate (frames, calibrations,
+    # errors: the connection closed) or a cap (rooms, players_per_room, ...)
+    limited: Counter[str] = field(default_factory=Counter)
 
     def as_json(self) -> dict[str, object]:
         return {"connections": self.connections, "frames_received": self.frames_received,
@@ -32,4 +35,5 @@ class Metrics:
                 "frames_rejected": self.frames_rejected,
                 "frames_solved": self.frames_solved, "batches": self.batches,
                 "frames_delivered": self.frames_delivered,
-                "frames_dropped": self.frames_dropped, "rejected": dict(self.rejected)}
+                "frames_dropped": self.frames_dropped, "rejected": dict(self.rejected),
+                "limited": dict(self.limited)}
