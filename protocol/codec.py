@@ -31,8 +31,10 @@ from posecast.protocol.messages import (
 from posecast.protocol.validation import (
     MAX_CLIENT_MESSAGE_BYTES,
     MAX_MESSAGE_BYTES,
+    _short_repr,
     checked_poses,
     protocol_error,
+    safe_text,
 )
 
 _WIRE = {"wire": True}  # validation context: arrays must arrive as bytes
@@ -83,7 +85,8 @@ def _decode(data: Any, max_bytes: int, allowed: frozenset[str] | None) -> BaseMo
         obj = msgpack.unpackb(data, raw=False, strict_map_key=True)
     except Exception as exc:  # msgpack raises several types; any of them means "not msgpack"
         why = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
-        raise ProtocolError(ErrorCode.NOT_MSGPACK, f"not a msgpack message ({why})") from None
+        raise ProtocolError(ErrorCode.NOT_MSGPACK,
+                            safe_text(f"not a msgpack message ({why})")) from None
     if not isinstance(obj, dict) or "type" not in obj:
         got = "a map without 'type'" if isinstance(obj, dict) else type(obj).__name__
         raise ProtocolError(ErrorCode.MALFORMED,
@@ -106,8 +109,7 @@ def _decode(data: Any, max_bytes: int, allowed: frozenset[str] | None) -> BaseMo
 
 
 def _short(value: object) -> str:
-    text = repr(value)
-    return text if len(text) <= 60 else text[:60] + "..."
+    return _short_repr(value, 60)  # depth-bounded and escaped: the value is the client's
 
 
 def encode_avatar_batch(avatar_ids: Sequence[int], seqs: Sequence[int], roots: NDArray[Any],

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import re
+import reprlib
 from collections.abc import Sequence
 from typing import Annotated, Any, TypeVar
 
@@ -304,7 +305,7 @@ def protocol_error(error: ValidationError, message_type: str) -> ProtocolError:
     first = details[0]
     path = message_type
     for part in first["loc"]:
-        path += f"[{part}]" if isinstance(part, int) else f".{part}"
+        path += f"[{part}]" if isinstance(part, int) else f".{field_name(str(part))}"
     why = str(first["msg"]).removeprefix("Value error, ")
     kind = str(first["type"])
     # our own checks put the value in the message; pydantic's own ones get it appended
@@ -313,9 +314,33 @@ def protocol_error(error: ValidationError, message_type: str) -> ProtocolError:
     if len(details) > 1:
         why += f" [and {len(details) - 1} more error(s)]"
     code = kind if kind in _CODES else ErrorCode.INVALID
-    return ProtocolError(code, f"{path}: {why}")
+    return ProtocolError(code, safe_text(f"{path}: {why}"))
+
+
+# the longest error text the protocol builds: an Error reply (MAX_TEXT_CHARS) always fits
+MAX_ERROR_CHARS = 400
+FIELD_NAME_CHARS = 40  # of a client's field name quoted in an error
+
+
+def safe_text(text: str, limit: int = MAX_ERROR_CHARS) -> str:
+    """Client-influenced text for an Error reply or a log line: control characters
+    escaped (no forged log lines, no terminal escapes) and cut to ``limit`` characters."""
+    if not text.isprintable():
+        text = "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def field_name(name: str) -> str:
+    """A client's field name in an error: escaped, and a long one as its first
+    characters and its length (a 1000-character name must not fill the reply)."""
+    shown = safe_text(name, FIELD_NAME_CHARS + 3)
+    return shown if len(name) <= FIELD_NAME_CHARS else f"{shown} ({len(name)} chars)"
+
+
+# depth-bounded: a value nested 1000 deep would exceed the interpreter's recursion limit
+_REPR = reprlib.Repr()
+_REPR.maxlevel, _REPR.maxstring, _REPR.maxother, _REPR.maxlong = 3, 60, 60, 40
 
 
 def _short_repr(value: object, limit: int = 80) -> str:
-    text = repr(value)
-    return text if len(text) <= limit else text[:limit] + "..."
+    return safe_text(_REPR.repr(value), limit + 3)

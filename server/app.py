@@ -38,12 +38,14 @@ from posecast.protocol import (
 )
 from posecast.protocol.arrivals import ArrivalStamps, arrival_time
 from posecast.protocol.codec import decode_tracker_poses
+from posecast.protocol.validation import safe_text
 from posecast.server.avatars import AvatarSolver
 from posecast.server.busy import BusyPoll
 from posecast.server.clock import now
 from posecast.server.helper import spare_cores
 from posecast.server.metrics import Metrics
 from posecast.server.outbox import Outbox
+from posecast.server.rejection_log import LineBudget, RejectionLog
 from posecast.server.room import Avatar, Delivery, Room, Spectator, send_deliveries
 from posecast.solver.readers.gltf import load_makehuman
 from posecast.solver.rig import Rig, build_rig
@@ -59,6 +61,11 @@ DRAIN_POLL_S = 0.001
 # websockets' own frame limit: far above any valid message, so that an oversized one still
 # reaches protocol/ and gets a clear Error (TOO_LARGE) instead of a bare close
 WEBSOCKET_MAX_SIZE = 1 << 20
+# rejection logs (server.rejection_log): each connection's first few, then a summary line
+# per interval; at most LOG_LINES_PER_INTERVAL such lines per interval for the server
+LOG_FIRST_REJECTIONS = 3
+LOG_INTERVAL_S = 10.0
+LOG_LINES_PER_INTERVAL = 50
 
 
 class Session:
@@ -78,6 +85,9 @@ class Session:
         self.metrics = Metrics()
         self._ids = itertools.count(1)
         self._owners: dict[int, ServerConnection] = {}  # avatar id -> its live connection
+        # log lines about rejections: sampled per connection, capped for the server
+        self.log_budget = LineBudget(LOG_LINES_PER_INTERVAL, LOG_INTERVAL_S)
+        self._rejection_logs: dict[ServerConnection, RejectionLog] = {}
         self.busy = BusyPoll(self.rig, solver) if busy else None
         # every room's avatars in one solver (avatar ids are the session's), so that one
         # helper thread serves them all; room for 32 before its arrays grow (and its
@@ -119,6 +129,9 @@ class Session:
                 await self._spectator(ws, conn_id, room, hello)
         finally:
             log.info("%s left after %.1f s (%s)", who, now() - t_joined, _closed_words(ws))
+            rejections = self._rejection_logs.pop(ws, None)
+            if rejections is not None:
+                rejections.summary()
         if room.empty:
             self.rooms.pop(room.name, None)
 
@@ -133,9 +146,10 @@ class Session:
                                     f"the first message must be hello, got {msg.type}")
         except ProtocolError as err:
             self.metrics.rejected[err.code] += 1
-            log.info("refused a connection from %s: %s: %s", _peer(ws), err.code,
-                     _safe(err.message, 160))
-            await ws.send(encode(Error(code=err.code, message=err.message)))
+            if self.log_budget.take(now()):  # one line per connection: capped too
+                log.info("refused a connection from %s: %s: %s", _peer(ws), err.code,
+                         safe_text(err.message, 160))
+            await ws.send(encode(Error(code=err.code, message=safe_text(err.message))))
             await ws.close(1008, err.code)
             return None
         return msg
@@ -185,6 +199,10 @@ class Session:
                     await self._reject(ws, err)
                 except ValueError as err:  # the solver refused the poses (e.g. a device lost)
                     await self._reject(ws, ProtocolError(ErrorCode.INVALID, str(err)))
+                except ConnectionClosed:
+                    raise
+                except Exception:  # a bug met by one message: it is answered, the rest goes on
+                    await self._internal_error(ws)
         except ConnectionClosed:
             pass
         finally:
@@ -256,6 +274,10 @@ class Session:
                     await self._common(ws, msg, t_received, "spectator")
                 except ProtocolError as err:
                     await self._reject(ws, err)
+                except ConnectionClosed:
+                    raise
+                except Exception:  # a bug met by one message: it is answered, the rest goes on
+                    await self._internal_error(ws)
         except ConnectionClosed:
             pass
         finally:
@@ -294,9 +316,20 @@ class Session:
 
     async def _reject(self, ws: ServerConnection, err: ProtocolError) -> None:
         self.metrics.rejected[err.code] += 1
-        log.info("rejected %s from %s: %s", err.code, _peer(ws), _safe(err.message, 160))
+        rejections = self._rejection_logs.get(ws)
+        if rejections is None:
+            rejections = self._rejection_logs[ws] = RejectionLog(
+                log, _peer(ws), self.log_budget, now, LOG_FIRST_REJECTIONS, LOG_INTERVAL_S)
+        rejections.rejected(err.code, err.message)
         with contextlib.suppress(ConnectionClosed):
-            await ws.send(encode(Error(code=err.code, message=err.message)))
+            # escaped and cut: whatever went into the text, the reply can be built
+            await ws.send(encode(Error(code=err.code, message=safe_text(err.message))))
+
+    async def _internal_error(self, ws: ServerConnection) -> None:
+        if self.log_budget.take(now()):  # a client that found a bug must not flood the log
+            log.exception("failed to handle a message from %s", _peer(ws))
+        await self._reject(ws, ProtocolError(ErrorCode.INTERNAL,
+                                             "the server failed to handle this message"))
 
 
 async def run_server(host: str, port: int, session: Session | None = None,
