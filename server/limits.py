@@ -46,6 +46,20 @@ class ServerLimits:
     # a viewer's 1 MiB limit (53 joints: ~2 KB per avatar)
     roster_avatars_per_message: int = 16
     roster_message_bytes: int = 64 * 1024
+    # a spectator that takes no frame for this long while frames wait for it is closed
+    # (1013): it stopped reading or its link is dead, and latest-wins can do no more
+    backlog_evict_s: float = 5.0
+    # a player with no tracker frame for this long (counted from its join or its last
+    # calibration) is closed (1008); its avatar leaves after the reconnect grace
+    idle_player_s: float = 60.0
+    # the kernel's send buffer of each accepted socket: small, so that a slow viewer's
+    # backlog builds in the event loop, where latest-wins replaces stale frames
+    send_buffer_bytes: int = 64 * 1024
+    # rejections logged one by one per connection; then one summary line per interval,
+    # and at most log_lines_per_interval such lines for the whole server
+    log_first_rejections: int = 3
+    log_interval_s: float = 10.0
+    log_lines_per_interval: int = 50
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
