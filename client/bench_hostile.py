@@ -1,0 +1,442 @@
+"""`posecast bench hostile --attack NAME`: what one hostile client does to everyone else
+(issue 14's acceptance figures).
+
+A real server process; a bystander player replaying the built-in walk at 90 Hz (in its
+own process, as a headset would be) and a bystander spectator watching it (here); then
+the attacker, in a process of its own, for S seconds. Attacks 1, 5 and 6 of the issue run
+in ANOTHER room than the bystanders (they must not slow the server for everyone); the
+poison attacks (item 2) run in the SAME room (a bad row must not cost the others theirs).
+Reported: the bystander's receive rate and worst gap, the bystander player's frames lost
+(seqs in the window the spectator never got), and the server's RSS growth.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import math
+import multiprocessing as mp
+from collections import Counter
+from collections.abc import Awaitable, Callable
+from multiprocessing.connection import Connection
+from typing import Any
+
+import msgpack
+from websockets.asyncio.client import ClientConnection, connect
+from websockets.exceptions import ConnectionClosed, InvalidHandshake
+
+from posecast.client.bench_target import TargetServer
+from posecast.client.builtin import builtin_motion_path
+from posecast.client.connection import SessionError
+from posecast.client.player import calibrate_message, run_player
+from posecast.client.sources.base import now
+from posecast.client.sources.bvh_source import BvhSource
+from posecast.client.spectator import Spectator
+from posecast.protocol import (
+    PROTOCOL_VERSION,
+    AvatarBatch,
+    AvatarRoster,
+    ClockEstimator,
+    Hello,
+    encode,
+)
+from posecast.protocol.codec import encode_tracker_frame
+
+ATTACKS = ("calibrate-flood", "bad-messages", "big-frames", "poison-time",
+           "poison-calibration")
+SAME_ROOM = frozenset({"poison-time", "poison-calibration"})  # issue item 2
+BYSTANDER_ROOM = "bystander"
+HOSTILE_ROOM = "hostile"
+BYSTANDER_NAME = "bystander"
+HEADSET_HZ = 90.0
+JOIN_TIMEOUT = 60.0
+RSS_SAMPLE_S = 0.1
+SETTLE_S = 1.0  # after the attack: what RSS the server keeps once the attacker is gone
+BIG_FRAME_BYTES = 1 << 20
+BIG_FRAME_CONNECTIONS = 10
+# the issue's acceptance figures
+TARGET_RATE_HZ = 80.0
+TARGET_GAP_MS = 100.0
+TARGET_RSS_MB = 30.0
+TARGET_LOST_PCT = 1.0
+
+
+# --------------------------------------------------------------------------- attacker
+class _Tally:
+    """What an attacker did and what came back."""
+
+    def __init__(self) -> None:
+        self.sent = 0
+        self.connections = 0
+        self.refused = 0  # connections the server would not open
+        self.errors: Counter[str] = Counter()  # Error replies by code
+        self.closes: Counter[str] = Counter()  # close codes (and reasons) it got
+
+    def closed(self, exc: ConnectionClosed) -> None:
+        close = exc.rcvd
+        self.closes[f"{close.code} {close.reason}".strip() if close is not None
+                    else "1006"] += 1
+
+    def as_json(self) -> dict[str, object]:
+        return {"messages_sent": self.sent, "connections": self.connections,
+                "connections_refused": self.refused, "errors": dict(self.errors),
+                "closes": dict(self.closes)}
+
+
+def _hello(role: str, room: str, name: str) -> bytes:
+    return encode(Hello(protocol_version=PROTOCOL_VERSION, role=role,  # type: ignore[arg-type]
+                        room=room, display_name=name))
+
+
+async def _drain(ws: ClientConnection, tally: _Tally) -> None:
+    """Read (and count) the replies: an attacker that never reads would only slow its
+    own flood, behind its full receive buffer."""
+    async for data in ws:
+        if isinstance(data, bytes):
+            try:
+                msg = msgpack.unpackb(data)
+            except Exception:
+                continue
+            if isinstance(msg, dict) and msg.get("type") == "error":
+                tally.errors[str(msg.get("code"))] += 1
+
+
+Attack = Callable[[ClientConnection, _Tally, Callable[[], bool]], Awaitable[None]]
+
+
+async def _connected(url: str, room: str, name: str, tally: _Tally, until: float,
+                     attack: Attack) -> None:
+    """Join ``room`` as a player and run ``attack``; when the server closes the
+    connection, join again, until the loop time ``until``."""
+    loop = asyncio.get_running_loop()
+
+    def running() -> bool:
+        return loop.time() < until
+
+    while running():
+        try:
+            async with connect(url, compression=None, max_size=None,
+                               open_timeout=10) as ws:
+                tally.connections += 1
+                await ws.send(_hello("player", room, name))
+                await ws.recv()  # the welcome (or an error before the close)
+                reader = asyncio.create_task(_drain(ws, tally))
+                try:
+                    await attack(ws, tally, running)
+                finally:
+                    reader.cancel()
+        except ConnectionClosed as exc:
+            tally.closed(exc)
+        except (OSError, InvalidHandshake, TimeoutError):
+            tally.refused += 1
+            await asyncio.sleep(0.01)
+
+
+def _source(offset: tuple[float, float]) -> BvhSource:
+    return BvhSource(builtin_motion_path(), loop=True, rate_hz=HEADSET_HZ, offset=offset)
+
+
+def _calibration_bytes(scale: float = 1.0) -> bytes:
+    source = _source((3.0, 0.0))  # beside the bystander, not on top of it
+    try:
+        message = calibrate_message(source.calibration(), 0.0)
+    finally:
+        source.close()
+    raw = msgpack.unpackb(encode(message))
+    if scale != 1.0:  # a T-pose spread over ~1 km: valid positions, absurd extent
+        import numpy as np
+
+        poses = np.frombuffer(raw["poses"], "<f8").reshape(-1, 7).copy()
+        poses[:, :3] *= scale
+        raw["poses"] = poses.tobytes()
+    return msgpack.packb(raw)
+
+
+def _bad_messages() -> list[bytes]:
+    """Malformed messages of every kind protocol/ rejects (item 5), two that crashed the
+    Error reply on main (item 4), and one that tried to forge a log line."""
+    ping = {"type": "ping", "t0": 1.0}
+    return [b"\xc1 not msgpack", msgpack.packb([1, 2, 3]),
+            msgpack.packb({"type": "nonsense"}), msgpack.packb({**ping, "t0": "x"}),
+            msgpack.packb({**ping, "bad\nINFO posecast.server: forged": 1}),
+            msgpack.packb({**ping, "k" * 1000: 1}),
+            msgpack.packb({**ping, "t0": _nested(1000)}),
+            msgpack.packb({"type": "tracker_frame", "seq": -1})]
+
+
+def _nested(depth: int) -> object:
+    value: object = 0
+    for _ in range(depth):
+        value = [value]
+    return value
+
+
+async def _flood(ws: ClientConnection, messages: list[bytes], tally: _Tally,
+                 running: Callable[[], bool]) -> None:
+    i = 0
+    while running():
+        await ws.send(messages[i % len(messages)])  # waits only while the socket is full
+        tally.sent += 1
+        i += 1
+
+
+async def _paced(ws: ClientConnection, tally: _Tally, running: Callable[[], bool],
+                 first: bytes, frame: Callable[[int], bytes]) -> None:
+    """``first`` (a calibration), then ``frame(seq)`` at a headset's rate."""
+    await ws.send(first)
+    tally.sent += 1
+    loop = asyncio.get_running_loop()
+    t0, seq = loop.time(), 0
+    while running():
+        await ws.send(frame(seq))
+        tally.sent += 1
+        seq += 1
+        await asyncio.sleep(max(0.0, t0 + seq / HEADSET_HZ - loop.time()))
+
+
+def _poisoned_frames(scale: float, t_capture: float | None,
+                     clock_offset: float | None) -> Callable[[int], bytes]:
+    """Tracker frames of the walk that are each valid field by field: with ``scale``,
+    positions stretched as the calibration was; with times, ones whose sum overflows."""
+    import numpy as np
+
+    source = _source((3.0, 0.0))
+    samples = [source.read() for _ in range(int(HEADSET_HZ))]
+    source.close()
+    frames: list[dict[str, Any]] = []
+    for s in samples:
+        assert s is not None
+        poses = np.array(s.poses, dtype=np.float64)
+        poses[:, :3] *= scale
+        frames.append(msgpack.unpackb(encode_tracker_frame(0, s.roles, poses, s.t_capture,
+                                                           0.0)))
+
+    def frame(seq: int) -> bytes:
+        raw = dict(frames[seq % len(frames)])
+        raw["seq"] = seq
+        if t_capture is not None:
+            raw["t_capture"] = t_capture
+        if clock_offset is not None:
+            raw["clock_offset"] = clock_offset
+        return msgpack.packb(raw)
+
+    return frame
+
+
+async def run_attack(url: str, attack: str, seconds: float) -> dict[str, object]:
+    """One attack against ``url`` for ``seconds``; returns the attacker's tally."""
+    tally = _Tally()
+    until = asyncio.get_running_loop().time() + seconds
+    if attack == "calibrate-flood":
+        calibration = [_calibration_bytes()]
+
+        async def flood_calibrations(ws: ClientConnection, t: _Tally,
+                                     running: Callable[[], bool]) -> None:
+            await _flood(ws, calibration, t, running)
+        await _connected(url, HOSTILE_ROOM, "flooder", tally, until, flood_calibrations)
+    elif attack == "bad-messages":
+        bad = _bad_messages()
+
+        async def flood_bad(ws: ClientConnection, t: _Tally,
+                            running: Callable[[], bool]) -> None:
+            await _flood(ws, bad, t, running)
+        await _connected(url, HOSTILE_ROOM, "garbler", tally, until, flood_bad)
+    elif attack == "big-frames":
+        big = [bytes(BIG_FRAME_BYTES)]
+
+        async def flood_big(ws: ClientConnection, t: _Tally,
+                            running: Callable[[], bool]) -> None:
+            await _flood(ws, big, t, running)
+        await asyncio.gather(*(
+            _connected(url, HOSTILE_ROOM, f"big {i}", tally, until, flood_big)
+            for i in range(BIG_FRAME_CONNECTIONS)))
+    elif attack in SAME_ROOM:
+        scale = 500.0 if attack == "poison-calibration" else 1.0
+        first = _calibration_bytes(scale)
+        frame = (_poisoned_frames(scale, None, None) if attack == "poison-calibration"
+                 else _poisoned_frames(1.0, 1e308, 1e308))
+
+        async def poison(ws: ClientConnection, t: _Tally,
+                         running: Callable[[], bool]) -> None:
+            await _paced(ws, t, running, first, frame)
+        await _connected(url, BYSTANDER_ROOM, "poisoner", tally, until, poison)
+    else:
+        raise ValueError(f"unknown attack {attack!r}; one of {', '.join(ATTACKS)}")
+    return tally.as_json()
+
+
+def _attack_process(pipe: Connection, url: str, attack: str, seconds: float) -> None:
+    _source((0.0, 0.0)).close()  # imports and the motion file read before "go"
+    pipe.send("ready")
+    pipe.recv()  # go
+    pipe.send(asyncio.run(run_attack(url, attack, seconds)))
+
+
+def _player_process(pipe: Connection, url: str, seconds: float) -> None:
+    source = _source((0.0, 0.0))
+    try:
+        stats = asyncio.run(run_player(url, BYSTANDER_ROOM, BYSTANDER_NAME, source,
+                                       seconds=seconds))
+        pipe.send({"frames_sent": stats.frames_sent, "errors": dict(stats.errors)})
+    except SessionError as err:
+        pipe.send({"error": str(err)})
+    finally:
+        source.close()
+
+
+# --------------------------------------------------------------------------- bystander
+class _Watcher(Spectator):
+    """The bystander spectator: when each frame of the bystander player's avatar came,
+    with its seq."""
+
+    def __init__(self, url: str) -> None:
+        super().__init__(url, BYSTANDER_ROOM, "bystander spectator")
+        self.avatar_id: int | None = None
+        self.arrivals: list[tuple[float, int]] = []  # (local time, seq)
+        self.seen = asyncio.Event()
+
+    def on_roster(self, roster: AvatarRoster) -> None:
+        super().on_roster(roster)
+        for info in roster.avatars:
+            if info.display_name == BYSTANDER_NAME:
+                self.avatar_id = info.avatar_id
+
+    def on_batch(self, batch: AvatarBatch, t_local: float, clock: ClockEstimator) -> None:
+        super().on_batch(batch, t_local, clock)
+        ids = batch.avatar_ids.tolist()
+        if self.avatar_id in ids:
+            self.arrivals.append((t_local, int(batch.seqs[ids.index(self.avatar_id)])))
+            if len(self.arrivals) >= HEADSET_HZ:
+                self.seen.set()
+
+
+def bystander_figures(arrivals: list[tuple[float, int]], t0: float,
+                      t1: float) -> dict[str, float]:
+    """Rate, worst gap and frames lost of one avatar's arrivals in the window [t0, t1]:
+    lost = seqs between the first and last received there that never arrived."""
+    inside = [(t, s) for t, s in arrivals if t0 <= t <= t1]
+    times = [t0] + [t for t, _ in inside] + [t1]
+    gap = max(b - a for a, b in itertools.pairwise(times))
+    seqs = {s for _, s in inside}
+    span = max(seqs) - min(seqs) + 1 if seqs else 0
+    return {"rate_hz": round(len(inside) / (t1 - t0), 1),
+            "worst_gap_ms": round(gap * 1000.0, 1),
+            "frames_received": len(inside), "frames_expected": span,
+            "frames_lost_pct": round(100.0 * (span - len(seqs)) / span, 2) if span
+            else 100.0}
+
+
+async def _sample_rss(server: TargetServer, samples: list[tuple[float, float, int]],
+                      stop: asyncio.Event) -> None:
+    while not stop.is_set():
+        samples.append((now(), server.rss_mb(), server.open_fds()))
+        await asyncio.sleep(RSS_SAMPLE_S)
+
+
+async def _measure(server: TargetServer, attack: str, seconds: float) -> dict[str, object]:
+    ctx = mp.get_context("spawn")
+    loop = asyncio.get_running_loop()
+    watcher = _Watcher(server.url)
+    watching = asyncio.create_task(watcher.run())
+    _player_pipe, child = ctx.Pipe()  # held: the player is killed, not asked, at the end
+    player = ctx.Process(target=_player_process,
+                         args=(child, server.url, seconds + 2 * SETTLE_S + 30.0), daemon=True)
+    attack_pipe, attack_child = ctx.Pipe()
+    attacker = ctx.Process(target=_attack_process,
+                           args=(attack_child, server.url, attack, seconds), daemon=True)
+    player.start()
+    attacker.start()
+    samples: list[tuple[float, float, int]] = []
+    stop_sampling = asyncio.Event()
+    try:
+        await asyncio.wait_for(watcher.seen.wait(), JOIN_TIMEOUT)
+        await asyncio.wait_for(loop.run_in_executor(None, attack_pipe.recv), JOIN_TIMEOUT)
+        rss_before, fds_before = server.rss_mb(), server.open_fds()
+        sampler = asyncio.create_task(_sample_rss(server, samples, stop_sampling))
+        t0 = now()
+        attack_pipe.send("go")
+        tally = await asyncio.wait_for(loop.run_in_executor(None, attack_pipe.recv),
+                                       seconds + JOIN_TIMEOUT)
+        t1 = now()
+        await asyncio.sleep(SETTLE_S)
+        stop_sampling.set()
+        await sampler
+        rss_after = server.rss_mb()
+        figures = bystander_figures(watcher.arrivals, t0, t1)
+        metrics = server.metrics()
+    finally:
+        watching.cancel()
+        await asyncio.gather(watching, return_exceptions=True)
+        for process in (attacker, player):
+            process.join(0.1)
+            if process.is_alive():
+                process.kill()
+                process.join(5)
+    during = [rss for _, rss, _ in samples if not math.isnan(rss)] or [rss_before]
+    growth = max(during) - rss_before
+    figures["decode_errors"] = sum(watcher.stats.errors.values())
+    return {
+        # the window ends when the attacker is done: its last close waits for the server
+        # to get through what it queued, which bystanders feel too
+        "attack": attack, "attack_seconds": seconds, "seconds": round(t1 - t0, 3),
+        "bystander": {"room": BYSTANDER_ROOM, "same_room_as_attacker": attack in SAME_ROOM,
+                      **figures},
+        "server": {"alive": server.alive, "rss_before_mb": round(rss_before, 1),
+                   "rss_max_mb": round(max(during), 1),
+                   "rss_after_mb": round(rss_after, 1),
+                   "rss_growth_mb": round(growth, 1), "fds_before": fds_before,
+                   "fds_max": max((f for _, _, f in samples), default=fds_before),
+                   "rejected": metrics.get("rejected", {})},
+        "attacker": tally,
+        "targets": _targets(attack, figures, growth),
+    }
+
+
+def _targets(attack: str, figures: dict[str, float], growth: float) -> list[dict[str, object]]:
+    """The issue's acceptance figures that apply to this attack, each with its verdict."""
+    if attack in SAME_ROOM:
+        lost = figures["frames_lost_pct"]
+        return [{"figure": "frames_lost_pct", "value": lost, "target": f"< {TARGET_LOST_PCT:g}",
+                 "met": lost < TARGET_LOST_PCT}]
+    return [{"figure": "rate_hz", "value": figures["rate_hz"],
+             "target": f">= {TARGET_RATE_HZ:g}", "met": figures["rate_hz"] >= TARGET_RATE_HZ},
+            {"figure": "worst_gap_ms", "value": figures["worst_gap_ms"],
+             "target": f"<= {TARGET_GAP_MS:g}",
+             "met": figures["worst_gap_ms"] <= TARGET_GAP_MS},
+            {"figure": "rss_growth_mb", "value": round(growth, 1),
+             "target": f"< {TARGET_RSS_MB:g}", "met": growth < TARGET_RSS_MB}]
+
+
+def bench_hostile(attack: str, seconds: float = 10.0, solver: str = "analytic"
+                  ) -> dict[str, object]:
+    """Run ``attack`` for ``seconds`` against a fresh server process; the report."""
+    if attack not in ATTACKS:
+        raise ValueError(f"unknown attack {attack!r}; one of {', '.join(ATTACKS)}")
+    with TargetServer(solver) as server:
+        return asyncio.run(_measure(server, attack, seconds))
+
+
+def format_hostile_table(doc: dict[str, Any]) -> str:
+    by, sv, at = doc["bystander"], doc["server"], doc["attacker"]
+    where = "same room as" if by["same_room_as_attacker"] else "another room than"
+    lines = [f"attack {doc['attack']} for {doc['attack_seconds']:g} s (window until the "
+             f"attacker was done: {doc['seconds']:g} s); bystander in {where} the attacker",
+             f"  {'figure':<26} {'value':>10}  {'target':>8}  met"]
+    target = {t["figure"]: t for t in doc["targets"]}
+    rows = [("rate_hz", "bystander receive rate Hz", by["rate_hz"]),
+            ("worst_gap_ms", "worst gap between frames ms", by["worst_gap_ms"]),
+            ("frames_lost_pct", "bystander player lost %", by["frames_lost_pct"]),
+            ("rss_growth_mb", "server RSS growth MB", sv["rss_growth_mb"])]
+    for key, words, value in rows:
+        t = target.get(key)
+        lines.append(f"  {words:<26} {value:>10g}  {t['target'] if t else '-':>8}  "
+                     + (("yes" if t["met"] else "NO") if t else "-"))
+    lines.append(f"  server RSS {sv['rss_before_mb']:g} -> max {sv['rss_max_mb']:g} -> "
+                 f"{sv['rss_after_mb']:g} MB after; fds {sv['fds_before']} -> max "
+                 f"{sv['fds_max']}; alive: {'yes' if sv['alive'] else 'NO'}")
+    lines.append(f"  attacker: {at['messages_sent']} messages on {at['connections']} "
+                 f"connections ({at['connections_refused']} refused); errors "
+                 f"{at['errors'] or '{}'}; closes {at['closes'] or '{}'}")
+    lines.append(f"  server rejected: {sv['rejected'] or '{}'}; bystander decode errors: "
+                 f"{by['decode_errors']}")
+    return "\n".join(lines)
