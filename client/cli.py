@@ -18,6 +18,7 @@ from posecast import __version__
 from posecast.client import arguments as arg
 from posecast.client.jit import CompileNotice, warm_kernels
 from posecast.protocol.validation import ROOM_NAME_RULE
+from posecast.server.limits import ServerLimits
 from posecast.solver.ik import DEFAULT_SOLVER, SOLVERS, SolverOptions
 
 if TYPE_CHECKING:
@@ -28,6 +29,15 @@ if TYPE_CHECKING:
 
 STOPPED = ("Ctrl-C (SIGINT) or SIGTERM stops it cleanly: it prints its summary and exits "
            "with status 130 (143 for SIGTERM), as a shell reports a signal.")
+
+
+def _limit(text: str) -> str:
+    """One NAME=VALUE of ``serve --limit``, checked against ServerLimits' fields."""
+    try:
+        ServerLimits().with_text([text])
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+    return text
 
 
 def _positive_ints(text: str) -> list[int]:
@@ -83,6 +93,12 @@ def _parser() -> argparse.ArgumentParser:
                     help="with --busy-poll on some cores only (taskset), a helper thread "
                          "spins on the others and takes part of each batch; this turns "
                          "it off")
+    defaults = ServerLimits()
+    sv.add_argument("--limit", action="append", default=[], type=_limit, metavar="NAME=VALUE",
+                    help="override one of the server's limits (repeat for more; "
+                         "docs/architecture.md, \"Limits\", says why each); names and "
+                         "defaults: " + ", ".join(f"{name}={value}" for name, value
+                                                  in vars(defaults).items()))
 
     pl = sub.add_parser("play", help="join a session as a tracked player",
                         description="Join a room as a player and stream your tracked poses. "
@@ -359,7 +375,8 @@ def _serve(args: argparse.Namespace) -> int:
 
     install_fast_loop()
     session = Session(solver=args.solver, busy=args.busy_poll,
-                      helper=None if args.helper else False)
+                      helper=None if args.helper else False,
+                      limits=ServerLimits().with_text(args.limit))
     try:
         asyncio.run(run_server(args.host, args.port, session, handle_signals=True))
     except OSError as err:

@@ -20,6 +20,7 @@ from collections.abc import Callable
 import numba
 from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
+from websockets.protocol import State
 
 from posecast.protocol import (
     PROTOCOL_VERSION,
@@ -43,6 +44,7 @@ from posecast.server.avatars import AvatarSolver
 from posecast.server.busy import BusyPoll
 from posecast.server.clock import now
 from posecast.server.helper import spare_cores
+from posecast.server.limits import Budget, ServerLimits
 from posecast.server.metrics import Metrics
 from posecast.server.outbox import Outbox
 from posecast.server.rejection_log import LineBudget, RejectionLog
@@ -58,9 +60,6 @@ RECONNECT_GRACE = 30.0  # seconds a disconnected player's avatar waits for its t
 # connections close (a spectator that stopped reading would hold the stop forever)
 DRAIN_TIMEOUT = 2.0
 DRAIN_POLL_S = 0.001
-# websockets' own frame limit: far above any valid message, so that an oversized one still
-# reaches protocol/ and gets a clear Error (TOO_LARGE) instead of a bare close
-WEBSOCKET_MAX_SIZE = 1 << 20
 # rejection logs (server.rejection_log): each connection's first few, then a summary line
 # per interval; at most LOG_LINES_PER_INTERVAL such lines per interval for the server
 LOG_FIRST_REJECTIONS = 3
@@ -73,8 +72,9 @@ class Session:
 
     def __init__(self, rig: Rig | None = None, solver: str = "analytic",
                  reconnect_grace: float = RECONNECT_GRACE, busy: bool = False,
-                 helper: bool | None = None) -> None:
-        """``busy``: poll without sleeping and keep the frame path warm between bursts
+                 helper: bool | None = None, limits: ServerLimits | None = None) -> None:
+        """``limits``: every cap and rate of the server (``server.limits``).
+        ``busy``: poll without sleeping and keep the frame path warm between bursts
         (``server.busy``); it takes a whole core. ``helper``: solve each batch with a
         helper thread on the cores this process is not pinned to (``server.helper``);
         by default with busy polling, where there are such cores."""
@@ -82,6 +82,10 @@ class Session:
         self.solver_name = solver
         self.reconnect_grace = reconnect_grace
         self.rooms: dict[str, Room] = {}
+        self.limits = limits or ServerLimits()
+        self._open_from: dict[str, int] = {}  # remote address -> its open connections
+        self._errors: dict[ServerConnection, Budget] = {}  # each connection's error budget
+        self._closing: set[asyncio.Task[None]] = set()
         self.metrics = Metrics()
         self._ids = itertools.count(1)
         self._owners: dict[int, ServerConnection] = {}  # avatar id -> its live connection
@@ -108,6 +112,36 @@ class Session:
         return self.rooms[name]
 
     async def handle(self, ws: ServerConnection) -> None:
+        """A connection, admitted within the caps on connections (``ServerLimits``)."""
+        address = ws.remote_address[0] if isinstance(ws.remote_address, tuple) else "?"
+        limits = self.limits
+        if sum(self._open_from.values()) >= limits.connections:
+            await self._refuse(ws, "connections", "the server is full")
+            return
+        if self._open_from.get(address, 0) >= limits.connections_per_address:
+            await self._refuse(ws, "connections_per_address",
+                               "too many connections from your address")
+            return
+        self._open_from[address] = self._open_from.get(address, 0) + 1
+        self._errors[ws] = Budget(limits.errors_per_s, limits.error_burst)
+        try:
+            await self._connection(ws)
+        finally:
+            self._errors.pop(ws, None)
+            self._open_from[address] -= 1
+            if not self._open_from[address]:
+                del self._open_from[address]
+
+    async def _refuse(self, ws: ServerConnection, limit: str, words: str) -> None:
+        """Refused at join: an Error naming the cap, then close 1008."""
+        self.metrics.limited[limit] += 1
+        self.metrics.rejected[ErrorCode.FULL] += 1
+        with contextlib.suppress(ConnectionClosed):
+            await ws.send(encode(Error(code=ErrorCode.FULL, message=(
+                f"{words}: limit {limit} = {getattr(self.limits, limit)}"))))
+            await ws.close(1008, f"limit {limit}")
+
+    async def _connection(self, ws: ServerConnection) -> None:
         self.metrics.connections += 1
         conn_id = next(self._ids)
         try:
@@ -115,6 +149,12 @@ class Session:
         except (ConnectionClosed, TimeoutError):
             return
         if hello is None:
+            return
+        if hello.room not in self.rooms and len(self.rooms) >= self.limits.rooms:
+            await self._refuse(ws, "rooms", "no room for a new room")
+            return
+        if hello.role == "player" and self._players_full(hello):
+            await self._refuse(ws, "players_per_room", "the room is full")
             return
         room = self.room(hello.room)
         # who is who in the log: role, name, room and address on join and on leave
@@ -134,6 +174,14 @@ class Session:
                 rejections.summary()
         if room.empty:
             self.rooms.pop(room.name, None)
+
+    def _players_full(self, hello: Hello) -> bool:
+        """A new player would pass the room's cap (a reconnect keeps its place)."""
+        room = self.rooms.get(hello.room)
+        if room is None or room.find_by_token(hello.token) is not None:
+            return False
+        connected = sum(a.connected for a in room.avatars.values())
+        return connected >= self.limits.players_per_room
 
     async def _hello(self, ws: ServerConnection) -> Hello | None:
         """The first message; anything else gets an Error and the connection is closed."""
@@ -159,6 +207,7 @@ class Session:
                       hello: Hello) -> None:
         avatar = room.find_by_token(hello.token)
         if avatar is None:
+            self._make_room_for_an_avatar(room)
             avatar = Avatar(next(self._ids), hello.display_name, hello.token)
             room.avatars[avatar.avatar_id] = avatar
         else:  # a reconnect: same avatar, same calibration; the old connection goes
@@ -168,8 +217,11 @@ class Session:
         avatar.connected = True
         avatar.connection = ws if isinstance(ws, ArrivalStamps) else None
         self._owners[avatar.avatar_id] = ws
+        limits = self.limits
+        frames = Budget(limits.frames_per_s, limits.frame_burst)
+        calibrations = Budget(limits.calibrations_per_s, limits.calibration_burst)
         if isinstance(ws, ArrivalStamps):
-            ws.fast_path = functools.partial(self._tracker_frame_now, room, avatar)
+            ws.fast_path = functools.partial(self._tracker_frame_now, room, avatar, frames)
         await ws.send(encode(Welcome(protocol_version=PROTOCOL_VERSION,
                                      connection_id=conn_id, avatar_id=avatar.avatar_id,
                                      server_time=now())))
@@ -181,6 +233,8 @@ class Session:
                     if isinstance(msg, TrackerFrame):
                         self.metrics.frames_received += 1
                         try:
+                            if not frames.take(t_received):
+                                raise self._limited("frames", limits.frames_per_s)
                             if not room.is_calibrated(avatar.avatar_id):
                                 raise ProtocolError(ErrorCode.NOT_CALIBRATED,
                                                     "send a calibrate message (T-pose) "
@@ -190,6 +244,8 @@ class Session:
                             self.metrics.frames_rejected += 1
                             raise
                     elif isinstance(msg, Calibrate):
+                        if not calibrations.take(t_received):
+                            raise self._limited("calibrations", limits.calibrations_per_s)
                         room.calibrate(avatar, msg.roles, msg.poses)
                         if self.busy is not None:
                             self.busy.warm.calibrate(msg.roles, msg.poses)
@@ -214,7 +270,7 @@ class Session:
                 avatar.connection = None
                 self._forget_later(room, avatar)
 
-    def _tracker_frame_now(self, room: Room, avatar: Avatar,
+    def _tracker_frame_now(self, room: Room, avatar: Avatar, frames: Budget,
                            data: bytes | bytearray | memoryview,
                            t_received: float) -> bool:
         """A player's message as its bytes are read (``ArrivalStamps.fast_path``): a
@@ -224,6 +280,8 @@ class Session:
         frame = decode_tracker_poses(data)
         if frame is None or not room.is_calibrated(avatar.avatar_id):
             return False
+        if not frames.take(t_received):  # over the rate: the handler's way refuses it
+            return False
         try:
             room.submit(avatar.avatar_id, frame, t_received)
         except ValueError:  # the solver refused the poses: the handler's way explains
@@ -232,6 +290,25 @@ class Session:
         if self.busy is not None:
             self.busy.warm.frame = data
         return True
+
+    def _make_room_for_an_avatar(self, room: Room) -> None:
+        """At the room's cap of avatars, the oldest of those whose player left goes now
+        rather than after its reconnect grace: joins and leaves cannot grow a room."""
+        cap = self.limits.avatars_per_room
+        gone = [a for a in room.avatars.values() if not a.connected]  # in join order
+        for avatar in gone[:max(0, len(room.avatars) - cap + 1)]:
+            self.metrics.limited["avatars_per_room"] += 1
+            room.remove_avatar(avatar.avatar_id)
+
+    def _close_soon(self, ws: ServerConnection, code: int, reason: str) -> None:
+        task = asyncio.get_running_loop().create_task(ws.close(code, reason))
+        self._closing.add(task)  # held until done: the loop keeps only weak references
+        task.add_done_callback(self._closing.discard)
+
+    def _limited(self, limit: str, per_s: float) -> ProtocolError:
+        self.metrics.limited[limit] += 1
+        return ProtocolError(ErrorCode.RATE_LIMITED,
+                             f"over {per_s:g} {limit} per second (limit {limit}_per_s)")
 
     def _forget_later(self, room: Room, avatar: Avatar) -> None:
         """Keep a disconnected player's avatar for a while in case it reconnects."""
@@ -259,7 +336,9 @@ class Session:
         spectator = Spectator(outbox, send_bytes, connection=ws)
         await ws.send(encode(Welcome(protocol_version=PROTOCOL_VERSION, connection_id=conn_id,
                                      avatar_id=None, server_time=now())))
-        await ws.send(encode(room.roster()))
+        for part in room.roster_messages(self.limits.roster_avatars_per_message,
+                                         self.limits.roster_message_bytes):
+            await ws.send(part)
         room.spectators[conn_id] = spectator
         spectator.task = asyncio.get_running_loop().create_task(outbox.run())
         try:
@@ -316,6 +395,15 @@ class Session:
 
     async def _reject(self, ws: ServerConnection, err: ProtocolError) -> None:
         self.metrics.rejected[err.code] += 1
+        budget = self._errors.get(ws)
+        if budget is not None and not budget.take(now()):
+            # errors keep coming: the client is not listening to them, so stop talking
+            self.metrics.limited["errors"] += 1
+            if ws.state is State.OPEN:  # once; and not awaited: while the handler
+                # waits, websockets stops reading at max_queue and never sees the reply
+                self._close_soon(ws, 1008, f"too many errors (over "
+                                 f"{self.limits.errors_per_s:g}/s)")
+            return
         rejections = self._rejection_logs.get(ws)
         if rejections is None:
             rejections = self._rejection_logs[ws] = RejectionLog(
@@ -349,7 +437,8 @@ async def run_server(host: str, port: int, session: Session | None = None,
     server: Server
     async with serve(session.handle, host, port, compression=None,
                      create_connection=TimestampedServerConnection,
-                     max_size=WEBSOCKET_MAX_SIZE, max_queue=64) as server:
+                     max_size=session.limits.max_message_bytes,
+                     max_queue=session.limits.max_queue) as server:
         bound = next(iter(server.sockets)).getsockname()[1]
         log.info("posecast server on ws://%s:%d", host, bound)
         if ready is not None:

@@ -270,6 +270,25 @@ class Room:
         return AvatarRoster(avatars=tuple(a.info for a in self.avatars.values()
                                           if a.info is not None))
 
+    def roster_messages(self, max_avatars: int, max_bytes: int) -> list[bytes]:
+        """The roster as encoded messages of at most ``max_avatars`` avatars and
+        ``max_bytes`` bytes each: a viewer merges them (each adds avatars), and however
+        many avatars the room holds no message nears a viewer's size limit."""
+        infos = [a.info for a in self.avatars.values() if a.info is not None]
+        if not infos:
+            return [encode(AvatarRoster())]
+        parts: list[bytes] = []
+        chunks = [infos[i:i + max_avatars] for i in range(0, len(infos), max_avatars)]
+        while chunks:
+            chunk = chunks.pop(0)
+            data = encode(AvatarRoster(avatars=tuple(chunk)))
+            if len(data) > max_bytes and len(chunk) > 1:  # large skeletons: halve it
+                half = len(chunk) // 2
+                chunks[:0] = [chunk[:half], chunk[half:]]
+            else:  # one avatar over the bound is still sent: within the protocol's own
+                parts.append(data)
+        return parts
+
     def broadcast_roster(self, roster: AvatarRoster) -> None:
         data = encode(roster)
         for s in self.spectators.values():

@@ -256,7 +256,8 @@ def _bad_messages(rec: ViveRecording) -> list[tuple[str, bytes, str]]:
     nan = poses(rec, 3).copy()
     nan[2, 1] = math.nan
     nan_frame = {**frame, "poses": nan.astype("<f8").tobytes()}
-    huge = {**frame, "padding": b"x" * 20000}
+    # over the protocol's 4 KiB, within websockets' bound (which closes with 1009)
+    huge = {**frame, "padding": b"x" * 3800}
     # valid as a message, but the solver needs both feet: rejected alone, as it arrives
     footless = {**frame, "roles": list(rec.devices[:-2]),
                 "poses": poses(rec, 3)[:-2].astype("<f8").tobytes()}
