@@ -85,6 +85,7 @@ class Session:
         self.limits = limits or ServerLimits()
         self._open_from: dict[str, int] = {}  # remote address -> its open connections
         self._errors: dict[ServerConnection, Budget] = {}  # each connection's error budget
+        self._address_calibrations: dict[str, Budget] = {}  # per address with connections
         self._closing: set[asyncio.Task[None]] = set()
         self.metrics = Metrics()
         self._ids = itertools.count(1)
@@ -131,6 +132,7 @@ class Session:
             self._open_from[address] -= 1
             if not self._open_from[address]:
                 del self._open_from[address]
+                self._address_calibrations.pop(address, None)
 
     async def _refuse(self, ws: ServerConnection, limit: str, words: str) -> None:
         """Refused at join: an Error naming the cap, then close 1008."""
@@ -220,6 +222,9 @@ class Session:
         limits = self.limits
         frames = Budget(limits.frames_per_s, limits.frame_burst)
         calibrations = Budget(limits.calibrations_per_s, limits.calibration_burst)
+        address = ws.remote_address[0] if isinstance(ws.remote_address, tuple) else "?"
+        from_address = self._address_calibrations.setdefault(address, Budget(
+            limits.address_calibrations_per_s, limits.address_calibration_burst))
         if isinstance(ws, ArrivalStamps):
             ws.fast_path = functools.partial(self._tracker_frame_now, room, avatar, frames)
         await ws.send(encode(Welcome(protocol_version=PROTOCOL_VERSION,
@@ -246,6 +251,9 @@ class Session:
                     elif isinstance(msg, Calibrate):
                         if not calibrations.take(t_received):
                             raise self._limited("calibrations", limits.calibrations_per_s)
+                        if not from_address.take(t_received):
+                            raise self._limited("address_calibrations",
+                                                limits.address_calibrations_per_s)
                         room.calibrate(avatar, msg.roles, msg.poses)
                         if self.busy is not None:
                             self.busy.warm.calibrate(msg.roles, msg.poses)

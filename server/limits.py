@@ -29,6 +29,10 @@ class ServerLimits:
     # a calibration costs ~1 ms of solve and a roster broadcast to every spectator
     calibrations_per_s: float = 1.0
     calibration_burst: int = 3  # a player retrying a T-pose a few times
+    # and per remote address, so that many connections cannot add up a flood: 32 at once
+    # (~40 ms of solve, a venue's players all starting together), then 4/s (~5 ms/s)
+    address_calibrations_per_s: float = 4.0
+    address_calibration_burst: int = 32
     # rejected messages per second; once the bucket is empty the connection is closed
     # (1008): a client that keeps erring is not worth answering
     errors_per_s: float = 10.0

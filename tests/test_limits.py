@@ -194,6 +194,28 @@ def test_tracker_frames_over_the_rate_are_refused(session: Session,
     run(test, session, limits)
 
 
+def test_calibrations_add_up_per_address(session: Session,
+                                         recording: ViveRecording) -> None:
+    """Many connections from one address cannot add up to a calibrate flood."""
+    limits = ServerLimits(calibration_burst=3, address_calibrations_per_s=0.1,
+                          address_calibration_burst=4)
+
+    async def test(url: str) -> None:
+        async with joined(url, "player", "a") as p1, joined(url, "player", "b") as p2:
+            for ws in (p1, p2, p1, p2, p1):  # the fifth from 127.0.0.1
+                await ws.send(calibration(recording))
+            # whichever connection's turn came fifth gets the Error
+            waits = [asyncio.ensure_future(receive_type(ws, Error)) for ws in (p1, p2)]
+            done, pending = await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
+            for w in pending:
+                w.cancel()
+            err = done.pop().result()
+            assert err.code == "rate_limited", err
+            assert "address_calibrations" in err.message
+
+    run(test, session, limits)
+
+
 def test_a_budget_refills_whole_each_window() -> None:
     b = Budget(per_s=10.0, burst=5)  # 0.5 s windows
     assert [b.take(0.0) for _ in range(6)] == [True] * 5 + [False]
