@@ -85,6 +85,7 @@ class Session:
         self.limits = limits or ServerLimits()
         self._open_from: dict[str, int] = {}  # remote address -> its open connections
         self._errors: dict[ServerConnection, Budget] = {}  # each connection's error budget
+        self._pings: dict[ServerConnection, Budget] = {}  # and its ping budget
         self._address_calibrations: dict[str, Budget] = {}  # per address with connections
         self._closing: set[asyncio.Task[None]] = set()
         self.metrics = Metrics()
@@ -125,10 +126,12 @@ class Session:
             return
         self._open_from[address] = self._open_from.get(address, 0) + 1
         self._errors[ws] = Budget(limits.errors_per_s, limits.error_burst)
+        self._pings[ws] = Budget(limits.pings_per_s, limits.ping_burst)
         try:
             await self._connection(ws)
         finally:
             self._errors.pop(ws, None)
+            self._pings.pop(ws, None)
             self._open_from[address] -= 1
             if not self._open_from[address]:
                 del self._open_from[address]
@@ -394,6 +397,9 @@ class Session:
     async def _common(self, ws: ServerConnection, msg: object, t_received: float,
                       role: str) -> None:
         if isinstance(msg, Ping):
+            pings = self._pings.get(ws)
+            if pings is not None and not pings.take(t_received):
+                raise self._limited("pings", self.limits.pings_per_s)
             await ws.send(encode(Pong(t0=msg.t0, t1=t_received, t2=now())))
         elif isinstance(msg, Leave):
             await ws.close(1000, "bye")

@@ -35,6 +35,9 @@ class ServerLimits:
     address_calibration_burst: int = 32
     # rejected messages per second; once the bucket is empty the connection is closed
     # (1008): a client that keeps erring is not worth answering
+    # clock-sync pings: a client sends a burst of 5 at start, then 1/s
+    pings_per_s: float = 10.0
+    ping_burst: int = 20
     errors_per_s: float = 10.0
     error_burst: int = 20
     # a room's solve and every roster grow with its players
@@ -71,6 +74,9 @@ class ServerLimits:
             # every numeric limit is a positive count, size, rate or time
             if isinstance(value, int | float) and not value > 0:
                 raise ValueError(f"limit {f.name} must be positive, got {value!r}")
+        if self.avatars_per_room < self.players_per_room:  # else connected ones overflow it
+            raise ValueError(f"limit avatars_per_room ({self.avatars_per_room}) must be at "
+                             f"least players_per_room ({self.players_per_room})")
 
     def with_text(self, pairs: list[str]) -> ServerLimits:
         """These limits with NAME=VALUE overrides (the command line's ``--limit``); a

@@ -216,6 +216,18 @@ def test_calibrations_add_up_per_address(session: Session,
     run(test, session, limits)
 
 
+def test_pings_over_the_rate_are_refused(session: Session) -> None:
+    async def test(url: str) -> None:
+        async with joined(url, "spectator", "pinger") as ws:
+            for _ in range(10):
+                await ws.send(encode(Ping(t0=0.0)))
+            err = await receive_type(ws, Error)
+            assert err.code == "rate_limited", err  # type: ignore[attr-defined]
+            assert "pings_per_s" in err.message  # type: ignore[attr-defined]
+
+    run(test, session, ServerLimits(pings_per_s=1.0, ping_burst=5))
+
+
 def test_a_budget_refills_whole_each_window() -> None:
     b = Budget(per_s=10.0, burst=5)  # 0.5 s windows
     assert [b.take(0.0) for _ in range(6)] == [True] * 5 + [False]
@@ -317,7 +329,8 @@ def test_a_1_mib_frame_is_refused_at_its_header(session: Session,
 def test_serve_takes_limits_by_name_and_refuses_bad_ones(
         capsys: pytest.CaptureFixture[str]) -> None:
     for bad, words in (("nope=1", "unknown limit 'nope'"), ("rooms=many", "integer"),
-                       ("rooms", "NAME=VALUE"), ("rooms=0", "positive")):
+                       ("rooms", "NAME=VALUE"), ("rooms=0", "positive"),
+                       ("avatars_per_room=8", "at least players_per_room")):
         with pytest.raises(SystemExit):
             main(["serve", "--limit", bad])
         assert words in capsys.readouterr().err
