@@ -24,6 +24,7 @@ class ErrorCode(StrEnum):
     AUTH_FAILED = "auth_failed"
     RATE_LIMITED = "rate_limited"  # over a per-connection message rate (server.limits)
     FULL = "full"  # a cap of the server is reached: rooms, players, connections
+    OUT_OF_ORDER = "out_of_order"  # a tracker frame whose seq is not above the last one
     INTERNAL = "internal"
 
 

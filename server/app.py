@@ -15,6 +15,7 @@ import functools
 import itertools
 import logging
 import signal
+import socket
 from collections.abc import Callable
 
 import numba
@@ -43,6 +44,7 @@ from posecast.protocol.validation import safe_text
 from posecast.server.avatars import AvatarSolver
 from posecast.server.busy import BusyPoll
 from posecast.server.clock import now
+from posecast.server.eviction import Watchdog, close_now
 from posecast.server.helper import spare_cores
 from posecast.server.limits import Budget, ServerLimits
 from posecast.server.metrics import Metrics
@@ -60,11 +62,6 @@ RECONNECT_GRACE = 30.0  # seconds a disconnected player's avatar waits for its t
 # connections close (a spectator that stopped reading would hold the stop forever)
 DRAIN_TIMEOUT = 2.0
 DRAIN_POLL_S = 0.001
-# rejection logs (server.rejection_log): each connection's first few, then a summary line
-# per interval; at most LOG_LINES_PER_INTERVAL such lines per interval for the server
-LOG_FIRST_REJECTIONS = 3
-LOG_INTERVAL_S = 10.0
-LOG_LINES_PER_INTERVAL = 50
 
 
 class Session:
@@ -92,7 +89,10 @@ class Session:
         self._ids = itertools.count(1)
         self._owners: dict[int, ServerConnection] = {}  # avatar id -> its live connection
         # log lines about rejections: sampled per connection, capped for the server
-        self.log_budget = LineBudget(LOG_LINES_PER_INTERVAL, LOG_INTERVAL_S)
+        self.log_budget = LineBudget(self.limits.log_lines_per_interval,
+                                     self.limits.log_interval_s)
+        # stalled spectators and idle players, looked at once a second (``watch``)
+        self.watchdog = Watchdog(self.limits.backlog_evict_s, self.limits.idle_player_s)
         self._rejection_logs: dict[ServerConnection, RejectionLog] = {}
         self.busy = BusyPoll(self.rig, solver) if busy else None
         # every room's avatars in one solver (avatar ids are the session's), so that one
@@ -127,6 +127,7 @@ class Session:
         self._open_from[address] = self._open_from.get(address, 0) + 1
         self._errors[ws] = Budget(limits.errors_per_s, limits.error_burst)
         self._pings[ws] = Budget(limits.pings_per_s, limits.ping_burst)
+        _cap_send_buffers(ws, limits)
         try:
             await self._connection(ws)
         finally:
@@ -220,6 +221,8 @@ class Session:
             if old is not None and old is not ws:
                 await old.close(1000, "reconnected elsewhere")
         avatar.connected = True
+        avatar.last_seq = -1  # seq counts per connection: a reconnect starts again
+        self.watchdog.player_active(avatar.avatar_id, now())
         avatar.connection = ws if isinstance(ws, ArrivalStamps) else None
         self._owners[avatar.avatar_id] = ws
         limits = self.limits
@@ -247,7 +250,13 @@ class Session:
                                 raise ProtocolError(ErrorCode.NOT_CALIBRATED,
                                                     "send a calibrate message (T-pose) "
                                                     "before tracker frames")
+                            if msg.seq <= avatar.last_seq:
+                                raise ProtocolError(
+                                    ErrorCode.OUT_OF_ORDER,
+                                    f"tracker_frame.seq: {msg.seq} is not above the last "
+                                    f"one, {avatar.last_seq}")
                             room.submit(avatar.avatar_id, msg, t_received)
+                            avatar.last_seq = msg.seq
                         except (ProtocolError, ValueError):  # replied to below
                             self.metrics.frames_rejected += 1
                             raise
@@ -258,6 +267,7 @@ class Session:
                             raise self._limited("address_calibrations",
                                                 limits.address_calibrations_per_s)
                         room.calibrate(avatar, msg.roles, msg.poses)
+                        self.watchdog.player_active(avatar.avatar_id, t_received)
                         if self.busy is not None:
                             self.busy.warm.calibrate(msg.roles, msg.poses)
                     else:
@@ -289,7 +299,9 @@ class Session:
         waiting for the handler task's turn. Anything else (other messages, anything
         wrong) returns False and takes the handler's way, which replies to it."""
         frame = decode_tracker_poses(data)
-        if frame is None or not room.is_calibrated(avatar.avatar_id):
+        # out of order: the handler's way refuses it
+        if frame is None or frame.seq <= avatar.last_seq \
+                or not room.is_calibrated(avatar.avatar_id):
             return False
         if not frames.take(t_received):  # over the rate: the handler's way refuses it
             return False
@@ -297,6 +309,7 @@ class Session:
             room.submit(avatar.avatar_id, frame, t_received)
         except ValueError:  # the solver refused the poses: the handler's way explains
             return False
+        avatar.last_seq = frame.seq
         self.metrics.frames_received += 1
         if self.busy is not None:
             self.busy.warm.frame = data
@@ -421,11 +434,49 @@ class Session:
         rejections = self._rejection_logs.get(ws)
         if rejections is None:
             rejections = self._rejection_logs[ws] = RejectionLog(
-                log, _peer(ws), self.log_budget, now, LOG_FIRST_REJECTIONS, LOG_INTERVAL_S)
+                log, _peer(ws), self.log_budget, now, self.limits.log_first_rejections,
+                self.limits.log_interval_s)
         rejections.rejected(err.code, err.message)
         with contextlib.suppress(ConnectionClosed):
             # escaped and cut: whatever went into the text, the reply can be built
             await ws.send(encode(Error(code=err.code, message=safe_text(err.message))))
+
+    # ------------------------------------------------------------------ eviction
+    async def watch(self) -> None:
+        """Run while serving: close the spectators whose backlog stays full and the
+        players that stopped sending (``server.eviction``)."""
+        while True:
+            await asyncio.sleep(self.watchdog.interval)
+            self.evict(now())
+
+    def evict(self, t: float) -> None:
+        dog, rooms = self.watchdog, self.rooms.values()
+        for s in dog.stalled([s for r in rooms for s in r.spectators.values()], t):
+            if s.connection is not None and s.connection.state is State.OPEN:
+                self._evict(s.connection, "backlog_evict_s", 1013,
+                            f"too slow: took no frame for {dog.backlog_evict_s:g} s")
+        for avatar in dog.idle([a for r in rooms for a in r.avatars.values()], t):
+            ws = self._owners.get(avatar.avatar_id)
+            if ws is not None and ws.state is State.OPEN:
+                self._evict(ws, "idle_player_s", 1008,
+                            f"idle: no tracker frame for {dog.idle_player_s:g} s")
+
+    def _evict(self, ws: ServerConnection, limit: str, code: int, reason: str) -> None:
+        self.metrics.limited[limit] += 1
+        if self.log_budget.take(now()):
+            log.info("closing %s: %s", _peer(ws), reason)
+        task = asyncio.get_running_loop().create_task(close_now(ws, code, reason))
+        self._closing.add(task)  # held until done: the loop keeps only weak references
+        task.add_done_callback(self._closing.discard)
+
+    async def close_stalled(self) -> None:
+        """On stop, after the drain: a spectator whose outbox still holds frames is not
+        reading; its close must not wait behind its full buffer."""
+        stalled = [s.connection for room in self.rooms.values()
+                   for s in room.spectators.values()
+                   if not s.outbox.idle and s.connection is not None]
+        if stalled:
+            await asyncio.gather(*(close_now(ws, 1001, "server stopping") for ws in stalled))
 
     async def _internal_error(self, ws: ServerConnection) -> None:
         if self.log_budget.take(now()):  # a client that found a bug must not flood the log
@@ -459,20 +510,40 @@ async def run_server(host: str, port: int, session: Session | None = None,
             ready(bound)
         poller = (loop.create_task(session.busy.run(stop))
                   if session.busy is not None else None)
+        watchdog = loop.create_task(session.watch())
         try:
             await stop.wait()
         finally:
+            watchdog.cancel()
             if poller is not None:
                 poller.cancel()
                 with contextlib.suppress(asyncio.CancelledError):
                     await poller
-        await session.drain(drain_timeout)
+        if not await session.drain(drain_timeout):
+            await session.close_stalled()
         server.close(close_connections=True)
         await server.wait_closed()
     for room in session.rooms.values():  # a burst opened while the connections closed
         room.discard_pending()
     session.avatars.close()
     return session
+
+
+def _cap_send_buffers(ws: ServerConnection, limits: ServerLimits) -> None:
+    """Small kernel and transport buffers, so that a viewer's backlog shows at once in
+    the event loop (Spectator.direct), where latest-wins replaces stale frames: with
+    the kernel's defaults a stalled viewer's queue grew to ~3.9 MB, seconds of stale
+    frames (docs/performance.md, "Slow viewers")."""
+    transport = ws.transport
+    sock = transport.get_extra_info("socket") if transport is not None else None
+    if sock is None:
+        return
+    with contextlib.suppress(OSError, AttributeError):  # not TCP, or no such option
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, limits.send_buffer_bytes)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NOTSENT_LOWAT,
+                        limits.send_unsent_bytes)
+    # a send waits until the transport has handed everything to the kernel
+    transport.set_write_buffer_limits(high=0)
 
 
 def _peer(ws: ServerConnection) -> str:

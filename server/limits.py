@@ -62,6 +62,9 @@ class ServerLimits:
     # the kernel's send buffer of each accepted socket: small, so that a slow viewer's
     # backlog builds in the event loop, where latest-wins replaces stale frames
     send_buffer_bytes: int = 64 * 1024
+    # unsent bytes the kernel may hold (TCP_NOTSENT_LOWAT) before the socket counts as
+    # full: bytes in flight to a far viewer are not limited, a backlog is (docs/performance.md)
+    send_unsent_bytes: int = 4096
     # rejections logged one by one per connection; then one summary line per interval,
     # and at most log_lines_per_interval such lines for the whole server
     log_first_rejections: int = 3

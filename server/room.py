@@ -85,11 +85,14 @@ class Avatar:
     # reached the process and waits for its handler (see Room._solve_when_burst_ends)
     connection: ArrivalStamps | None = None
     cadence: Cadence = field(default_factory=Cadence)  # when its next frame is due
+    last_seq: int = -1  # of its player's last frame taken on this connection
 
 
 # a spectator whose socket holds more unsent bytes than this is slow: its frames go
-# through its outbox (latest wins) instead of piling up in the kernel and the transport
-DIRECT_WRITE_LIMIT = 64 * 1024
+# through its outbox (latest wins) instead of piling up in the kernel and the transport.
+# The kernel's share is capped (ServerLimits.send_unsent_bytes): a byte left in the
+# transport means the viewer is behind
+DIRECT_WRITE_LIMIT = 1
 
 
 @dataclass(eq=False)

@@ -25,14 +25,18 @@ from posecast.protocol import (
     encode,
 )
 from posecast.protocol.validation import MAX_TEXT_CHARS
-from posecast.server.app import LOG_FIRST_REJECTIONS, Session
+from posecast.server.app import Session
+from posecast.server.limits import ServerLimits
 
 TIMEOUT = 10.0
+LIMITS = ServerLimits(errors_per_s=1e9, error_burst=10**9)
+LOG_FIRST_REJECTIONS = LIMITS.log_first_rejections
 
 
 @pytest.fixture(scope="module")
 def session() -> Session:
-    return Session(reconnect_grace=0.0)
+    # errors are not rate-limited here: these tests are about each reply and the log
+    return Session(reconnect_grace=0.0, limits=LIMITS)
 
 
 def run(test: Callable[[str], Awaitable[None]], session: Session) -> None:

@@ -1,0 +1,303 @@
+"""Clients that hold the server's resources and give nothing back, over real sockets on
+127.0.0.1 (issue 14, items 7 and 8): frames out of order, idle players, spectators that
+stop reading or read slowly, and a stop that must not wait behind them."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import socket
+import time
+from collections.abc import AsyncIterator
+
+import numpy as np
+import pytest
+from websockets.asyncio.client import ClientConnection, connect
+from websockets.exceptions import ConnectionClosed
+
+from posecast.client.builtin import builtin_motion_path
+from posecast.client.demo import ROOM, run_players
+from posecast.client.sources.bvh_source import tracker_recording
+from posecast.protocol import (
+    PROTOCOL_VERSION,
+    AvatarBatch,
+    AvatarRoster,
+    Calibrate,
+    Error,
+    Hello,
+    Ping,
+    Pong,
+    TrackerFrame,
+    Welcome,
+    decode,
+    encode,
+)
+from posecast.server.app import Session, run_server
+from posecast.server.clock import now
+from posecast.server.limits import ServerLimits
+from posecast.solver.motion import ViveRecording
+
+TIMEOUT = 10.0
+
+
+@pytest.fixture(scope="module")
+def motion() -> ViveRecording:
+    return tracker_recording(builtin_motion_path(), 2.0)
+
+
+@contextlib.asynccontextmanager
+async def server(session: Session) -> AsyncIterator[tuple[str, asyncio.Event,
+                                                          asyncio.Task[Session]]]:
+    """A real server on a free port; the test may stop it itself (and time the stop)."""
+    stop = asyncio.Event()
+    ready: asyncio.Future[int] = asyncio.get_running_loop().create_future()
+    task = asyncio.create_task(run_server("127.0.0.1", 0, session, stop, ready.set_result))
+    port = await asyncio.wait_for(ready, TIMEOUT)
+    try:
+        yield f"ws://127.0.0.1:{port}", stop, task
+    finally:
+        stop.set()
+        await asyncio.wait_for(task, 3 * TIMEOUT)
+
+
+async def join(url: str, role: str, room: str = ROOM, token: str | None = None,
+               rcvbuf: int | None = None) -> ClientConnection:
+    """A raw client; ``rcvbuf``: a small kernel receive buffer and a one-message queue,
+    so that what it has not read waits on the server's side (a slow link, not a client
+    hoarding megabytes)."""
+    sock = None
+    if rcvbuf is not None:
+        sock = socket.socket()
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
+        port = int(url.rsplit(":", 1)[1])
+        await asyncio.get_running_loop().sock_connect(sock, ("127.0.0.1", port))
+    ws = await connect(url, sock=sock, compression=None, max_size=None,
+                       max_queue=1 if rcvbuf is not None else 16)
+    await ws.send(encode(Hello(protocol_version=PROTOCOL_VERSION, role=role, room=room,
+                               display_name=role, token=token)))
+    assert isinstance(decode(await asyncio.wait_for(ws.recv(), TIMEOUT)), Welcome)
+    return ws
+
+
+async def next_of(ws: ClientConnection, kind: type) -> object:
+    while True:
+        msg = decode(await asyncio.wait_for(ws.recv(), TIMEOUT))
+        if isinstance(msg, kind):
+            return msg
+
+
+def frame(rec: ViveRecording, seq: int) -> bytes:
+    i = 1 + seq % (len(rec.positions) - 1)
+    poses = np.concatenate([rec.positions[i], rec.rotations[i]], axis=1)
+    return encode(TrackerFrame(seq=seq, roles=rec.devices, poses=poses,
+                               t_capture=now(), clock_offset=0.0))
+
+
+def calibrate(rec: ViveRecording) -> bytes:
+    poses = np.concatenate([rec.positions[0], rec.rotations[0]], axis=1)
+    return encode(Calibrate(roles=rec.devices, poses=poses, t_capture=now(),
+                            clock_offset=0.0))
+
+
+async def closed(ws: ClientConnection) -> ConnectionClosed:
+    """Read until the server closes the connection; its close."""
+    try:
+        while True:
+            await asyncio.wait_for(ws.recv(), TIMEOUT)
+    except ConnectionClosed as closing:
+        return closing
+
+
+# ------------------------------------------------------------------ item 7: seq
+def test_frames_out_of_order_are_refused_and_a_reconnect_starts_again(
+        motion: ViveRecording) -> None:
+    session = Session(reconnect_grace=5.0)
+
+    async def main() -> None:
+        async with server(session) as (url, _, _):
+            viewer = await join(url, "spectator")
+            player = await join(url, "player", token="tok-seq")
+            await player.send(calibrate(motion))
+            for seq in (0, 1, 2, 5):
+                await player.send(frame(motion, seq))
+            for seq in (5, 3):  # repeated, then going back
+                await player.send(frame(motion, seq))
+                error = await next_of(player, Error)
+                assert isinstance(error, Error)
+                assert error.code == "out_of_order" and f"seq: {seq} " in error.message
+            await player.send(frame(motion, 6))  # and on it goes
+            await player.send(encode(Ping(t0=0.0)))
+            assert isinstance(await next_of(player, Pong), Pong)  # no error came before
+            seen: set[int] = set()
+            while 6 not in seen:
+                batch = await next_of(viewer, AvatarBatch)
+                assert isinstance(batch, AvatarBatch)
+                seen.update(int(s) for s in batch.seqs)
+            assert 3 not in seen  # the refused frame was never solved
+            await player.close()
+            # the same token on a new connection counts from 0 again
+            again = await join(url, "player", token="tok-seq")
+            await again.send(frame(motion, 0))
+            await again.send(encode(Ping(t0=0.0)))
+            assert isinstance(await next_of(again, Pong), Pong)
+            await again.close()
+            await viewer.close()
+        assert session.metrics.rejected["out_of_order"] == 2
+
+    asyncio.run(main())
+
+
+def test_the_projects_own_players_never_trip_the_seq_check() -> None:
+    session = Session(reconnect_grace=0.0)
+
+    async def main() -> None:
+        async with server(session) as (url, _, _):
+            stats = await run_players(url, 3, 2.0, builtin_motion_path())
+            assert all(s.frames_sent > 100 and not s.errors for s in stats), stats
+        assert session.metrics.rejected["out_of_order"] == 0
+        assert session.metrics.frames_rejected == 0
+
+    asyncio.run(main())
+
+
+# ------------------------------------------------------------------ item 7: idle players
+def test_an_idle_player_is_closed_and_its_avatar_leaves(motion: ViveRecording) -> None:
+    limits = ServerLimits(idle_player_s=1.0)
+    session = Session(reconnect_grace=0.5, limits=limits)
+
+    async def main() -> None:
+        async with server(session) as (url, _, _):
+            viewer = await join(url, "spectator")
+            player = await join(url, "player", token="tok-idle")
+            await player.send(calibrate(motion))
+            roster = await next_of(viewer, AvatarRoster)
+            while isinstance(roster, AvatarRoster) and not roster.avatars:  # the one at join
+                roster = await next_of(viewer, AvatarRoster)
+            assert isinstance(roster, AvatarRoster) and len(roster.avatars) == 1
+            avatar_id = roster.avatars[0].avatar_id
+            for seq in range(3):
+                await player.send(frame(motion, seq))
+
+            async def ping_only() -> None:  # alive, but sending no frame
+                with contextlib.suppress(ConnectionClosed):
+                    while True:
+                        await player.send(encode(Ping(t0=0.0)))
+                        await asyncio.sleep(0.2)
+
+            pinger = asyncio.create_task(ping_only())
+            closing = await closed(player)
+            pinger.cancel()
+            assert closing.rcvd is not None and closing.rcvd.code == 1008
+            assert "idle" in closing.rcvd.reason
+            while True:  # then, after the reconnect grace, its avatar leaves the roster
+                roster = await next_of(viewer, AvatarRoster)
+                assert isinstance(roster, AvatarRoster)
+                if avatar_id in roster.removed:
+                    break
+            await viewer.close()
+        assert session.metrics.limited["idle_player_s"] == 1
+
+    asyncio.run(main())
+
+
+def test_players_that_keep_sending_are_not_idle() -> None:
+    session = Session(reconnect_grace=0.0, limits=ServerLimits(idle_player_s=0.5))
+
+    async def main() -> None:
+        async with server(session) as (url, _, _):
+            stats = await run_players(url, 2, 2.0, builtin_motion_path())
+            assert all(s.ended_by == "time" and not s.errors for s in stats), stats
+        assert session.metrics.limited["idle_player_s"] == 0
+
+    asyncio.run(main())
+
+
+# ------------------------------------------------------------------ item 7: stalled viewers
+def test_a_spectator_that_stops_reading_is_closed_and_others_carry_on() -> None:
+    session = Session(reconnect_grace=0.0, limits=ServerLimits(backlog_evict_s=1.0))
+
+    async def main() -> None:
+        async with server(session) as (url, _, _):
+            stuck = await join(url, "spectator", rcvbuf=4096)  # and never reads
+            slow = await join(url, "spectator", rcvbuf=4096)
+            batches = 0
+
+            async def read_slowly() -> None:  # a slow link still takes frames: it stays
+                nonlocal batches
+                while True:
+                    if isinstance(decode(await slow.recv()), AvatarBatch):
+                        batches += 1
+                    await asyncio.sleep(0.1)
+
+            reader = asyncio.create_task(read_slowly())
+            await run_players(url, 4, 4.0, builtin_motion_path())
+            assert session.metrics.limited["backlog_evict_s"] == 1
+            assert len(session.rooms[ROOM].spectators) == 1  # the slow one
+            assert batches > 10 and not reader.done()
+            reader.cancel()
+            closing = await closed(stuck)  # behind its backlog: the close, or a reset
+            assert closing.rcvd is None or closing.rcvd.code == 1013
+            await slow.close()
+
+    asyncio.run(main())
+
+
+def test_a_stop_does_not_wait_behind_a_stuck_spectator() -> None:
+    # eviction far off: the stop itself meets the stuck spectator
+    session = Session(reconnect_grace=0.0, limits=ServerLimits(backlog_evict_s=600.0))
+
+    async def main() -> None:
+        async with server(session) as (url, stop, task):
+            stuck = await join(url, "spectator", rcvbuf=4096)
+            players = asyncio.create_task(run_players(url, 4, 30.0, builtin_motion_path()))
+            room = None
+            while room is None or all(s.outbox.idle for s in room.spectators.values()):
+                await asyncio.sleep(0.5)  # until its backlog is full
+                room = session.rooms.get(ROOM)
+            await asyncio.sleep(1.0)
+            t0 = time.monotonic()
+            stop.set()
+            await asyncio.wait_for(task, 3 * TIMEOUT)
+            took = time.monotonic() - t0
+            players.cancel()
+            with contextlib.suppress(BaseException):
+                await players
+            await closed(stuck)
+        # the drain (2 s) and a 1 s close, not websockets' 10 s close timeout or worse
+        assert took < 8.0, took
+
+    asyncio.run(main())
+
+
+# ------------------------------------------------------------------ item 8: slow viewers
+def test_a_slow_viewer_sees_recent_frames_not_seconds_of_old_ones() -> None:
+    session = Session(reconnect_grace=0.0)
+    players, seconds, read_every = 8, 5.0, 0.075
+
+    async def main() -> list[float]:
+        async with server(session) as (url, _, _):
+            viewer = await join(url, "spectator", rcvbuf=4096)
+            lags: list[float] = []
+
+            async def read_slowly() -> None:
+                while True:
+                    msg = decode(await viewer.recv())
+                    if isinstance(msg, AvatarBatch) and len(msg.t_capture):
+                        # how old the newest pose in it is: the player captured a newer
+                        # one every 11 ms, so this is how far behind the viewer is
+                        lags.append(now() - float(np.max(msg.t_capture)))
+                    await asyncio.sleep(read_every)
+
+            reader = asyncio.create_task(read_slowly())
+            await run_players(url, players, seconds, builtin_motion_path())
+            reader.cancel()
+            await viewer.close()
+            return lags
+
+    lags = asyncio.run(main())
+    assert len(lags) > 20
+    settled = lags[len(lags) // 3:]  # once every buffer on the way is as full as it gets
+    # ~0.3 s measured (its own receive buffer and queue hold ~4 of the 2.7 KB batches);
+    # with the kernel's default buffers it was 3-7 s behind
+    assert max(settled) < 1.0, [round(x, 3) for x in settled]
+    assert session.metrics.frames_dropped > 0  # latest wins: old frames were replaced
