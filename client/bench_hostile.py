@@ -24,6 +24,7 @@ from typing import Any
 import msgpack
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake
+from websockets.protocol import State
 
 from posecast.client.bench_target import TargetServer
 from posecast.client.builtin import builtin_motion_path
@@ -50,8 +51,10 @@ HOSTILE_ROOM = "hostile"
 BYSTANDER_NAME = "bystander"
 HEADSET_HZ = 90.0
 JOIN_TIMEOUT = 60.0
+ATTACK_GRACE_S = 20.0  # an attacker's last close may wait for the server's backlog
 RSS_SAMPLE_S = 0.1
 SETTLE_S = 1.0  # after the attack: what RSS the server keeps once the attacker is gone
+POISON_REACH_M = 950.0  # inside the protocol's 1000 m: each position valid alone
 BIG_FRAME_BYTES = 1 << 20
 BIG_FRAME_CONNECTIONS = 10
 # the issue's acceptance figures
@@ -123,10 +126,18 @@ async def _connected(url: str, room: str, name: str, tally: _Tally, until: float
                 reader = asyncio.create_task(_drain(ws, tally))
                 try:
                     await attack(ws, tally, running)
+                # AttributeError: websockets' send on a transport the server just closed
+                except (ConnectionClosed, AttributeError):
+                    pass
                 finally:
                     reader.cancel()
+                if ws.state is not State.OPEN:  # the server closed it: how
+                    await asyncio.wait_for(ws.wait_closed(), 10)
+                    tally.closes[f"{ws.close_code} {ws.close_reason or ''}".strip()] += 1
         except ConnectionClosed as exc:
             tally.closed(exc)
+        except AttributeError:  # websockets closing a transport already lost: counted
+            pass
         except (OSError, InvalidHandshake, TimeoutError):
             tally.refused += 1
             await asyncio.sleep(0.01)
@@ -137,19 +148,27 @@ def _source(offset: tuple[float, float]) -> BvhSource:
 
 
 def _calibration_bytes(scale: float = 1.0) -> bytes:
-    source = _source((3.0, 0.0))  # beside the bystander, not on top of it
+    """The walk's T-pose; with ``scale``, stretched about the origin: each position still
+    within the protocol's bound, the skeleton ~1 km across (issue 14, item 2)."""
+    source = _source((0.0, 0.0) if scale != 1.0 else (3.0, 0.0))  # beside the bystander
     try:
         message = calibrate_message(source.calibration(), 0.0)
     finally:
         source.close()
     raw = msgpack.unpackb(encode(message))
-    if scale != 1.0:  # a T-pose spread over ~1 km: valid positions, absurd extent
-        import numpy as np
-
-        poses = np.frombuffer(raw["poses"], "<f8").reshape(-1, 7).copy()
-        poses[:, :3] *= scale
-        raw["poses"] = poses.tobytes()
+    raw["poses"] = _scaled(raw["poses"], scale)
     return msgpack.packb(raw)
+
+
+def _scaled(poses: bytes, scale: float) -> bytes:
+    import numpy as np
+
+    array = np.frombuffer(poses, "<f8").reshape(-1, 7).copy()
+    if scale != 1.0:  # centred over the origin, then as large as the bound allows
+        array[:, [0, 2]] -= array[:, [0, 2]].mean(axis=0)
+        reach = float(np.linalg.norm(array[:, :3], axis=1).max())
+        array[:, :3] *= min(scale, POISON_REACH_M / reach)
+    return array.tobytes()
 
 
 def _bad_messages() -> list[bytes]:
@@ -174,7 +193,7 @@ def _nested(depth: int) -> object:
 async def _flood(ws: ClientConnection, messages: list[bytes], tally: _Tally,
                  running: Callable[[], bool]) -> None:
     i = 0
-    while running():
+    while running() and ws.state is State.OPEN:
         await ws.send(messages[i % len(messages)])  # waits only while the socket is full
         tally.sent += 1
         i += 1
@@ -187,7 +206,7 @@ async def _paced(ws: ClientConnection, tally: _Tally, running: Callable[[], bool
     tally.sent += 1
     loop = asyncio.get_running_loop()
     t0, seq = loop.time(), 0
-    while running():
+    while running() and ws.state is State.OPEN:
         await ws.send(frame(seq))
         tally.sent += 1
         seq += 1
@@ -196,20 +215,17 @@ async def _paced(ws: ClientConnection, tally: _Tally, running: Callable[[], bool
 
 def _poisoned_frames(scale: float, t_capture: float | None,
                      clock_offset: float | None) -> Callable[[int], bytes]:
-    """Tracker frames of the walk that are each valid field by field: with ``scale``,
-    positions stretched as the calibration was; with times, ones whose sum overflows."""
-    import numpy as np
-
-    source = _source((3.0, 0.0))
-    samples = [source.read() for _ in range(int(HEADSET_HZ))]
-    source.close()
-    frames: list[dict[str, Any]] = []
-    for s in samples:
-        assert s is not None
-        poses = np.array(s.poses, dtype=np.float64)
-        poses[:, :3] *= scale
-        frames.append(msgpack.unpackb(encode_tracker_frame(0, s.roles, poses, s.t_capture,
-                                                           0.0)))
+    """Tracker frames, each valid field by field: with ``scale``, the stretched T-pose
+    of the calibration held still; with times, the walk at times whose sum overflows."""
+    if scale != 1.0:
+        calibration = msgpack.unpackb(_calibration_bytes(scale))
+        frames = [{**calibration, "type": "tracker_frame", "seq": 0}]
+    else:
+        source = _source((3.0, 0.0))
+        samples = [source.read() for _ in range(int(HEADSET_HZ))]
+        source.close()
+        frames = [msgpack.unpackb(encode_tracker_frame(0, s.roles, s.poses, s.t_capture, 0.0))
+                  for s in samples if s is not None]
 
     def frame(seq: int) -> bytes:
         raw = dict(frames[seq % len(frames)])
@@ -224,8 +240,18 @@ def _poisoned_frames(scale: float, t_capture: float | None,
 
 
 async def run_attack(url: str, attack: str, seconds: float) -> dict[str, object]:
-    """One attack against ``url`` for ``seconds``; returns the attacker's tally."""
+    """One attack against ``url`` for ``seconds``; returns the attacker's tally. A
+    server that stops answering does not hold the attacker: it gives up ATTACK_GRACE_S
+    after its time, and says so (``timed_out``)."""
     tally = _Tally()
+    try:
+        await asyncio.wait_for(_attack(url, attack, seconds, tally), seconds + ATTACK_GRACE_S)
+    except TimeoutError:
+        return {**tally.as_json(), "timed_out": True}
+    return {**tally.as_json(), "timed_out": False}
+
+
+async def _attack(url: str, attack: str, seconds: float, tally: _Tally) -> None:
     until = asyncio.get_running_loop().time() + seconds
     if attack == "calibrate-flood":
         calibration = [_calibration_bytes()]
@@ -262,14 +288,17 @@ async def run_attack(url: str, attack: str, seconds: float) -> dict[str, object]
         await _connected(url, BYSTANDER_ROOM, "poisoner", tally, until, poison)
     else:
         raise ValueError(f"unknown attack {attack!r}; one of {', '.join(ATTACKS)}")
-    return tally.as_json()
 
 
 def _attack_process(pipe: Connection, url: str, attack: str, seconds: float) -> None:
     _source((0.0, 0.0)).close()  # imports and the motion file read before "go"
     pipe.send("ready")
     pipe.recv()  # go
-    pipe.send(asyncio.run(run_attack(url, attack, seconds)))
+    try:
+        pipe.send(asyncio.run(run_attack(url, attack, seconds)))
+    except Exception as exc:  # the bench says what went wrong instead of waiting
+        pipe.send({"failed": repr(exc)})
+        raise
 
 
 def _player_process(pipe: Connection, url: str, seconds: float) -> None:
@@ -297,6 +326,8 @@ class _Watcher(Spectator):
 
     def on_roster(self, roster: AvatarRoster) -> None:
         super().on_roster(roster)
+        if self.avatar_id in roster.removed:  # a previous run's bystander
+            self.avatar_id = None
         for info in roster.avatars:
             if info.display_name == BYSTANDER_NAME:
                 self.avatar_id = info.avatar_id
@@ -326,6 +357,18 @@ def bystander_figures(arrivals: list[tuple[float, int]], t0: float,
             else 100.0}
 
 
+async def _reply(pipe: Connection, timeout: float) -> Any:
+    """The next message of a child process, polled: a thread blocked in recv would hold
+    the event loop's shutdown if the child never answered."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    while not pipe.poll():
+        if loop.time() > deadline:
+            raise TimeoutError(f"no word from the attacker within {timeout:g} s")
+        await asyncio.sleep(0.02)
+    return pipe.recv()
+
+
 async def _sample_rss(server: TargetServer, samples: list[tuple[float, float, int]],
                       stop: asyncio.Event) -> None:
     while not stop.is_set():
@@ -350,20 +393,21 @@ async def _measure(server: TargetServer, attack: str, seconds: float) -> dict[st
     stop_sampling = asyncio.Event()
     try:
         await asyncio.wait_for(watcher.seen.wait(), JOIN_TIMEOUT)
-        await asyncio.wait_for(loop.run_in_executor(None, attack_pipe.recv), JOIN_TIMEOUT)
+        await _reply(attack_pipe, JOIN_TIMEOUT)
         rss_before, fds_before = server.rss_mb(), server.open_fds()
         sampler = asyncio.create_task(_sample_rss(server, samples, stop_sampling))
         t0 = now()
         attack_pipe.send("go")
-        tally = await asyncio.wait_for(loop.run_in_executor(None, attack_pipe.recv),
-                                       seconds + JOIN_TIMEOUT)
+        tally = await _reply(attack_pipe, seconds + ATTACK_GRACE_S + JOIN_TIMEOUT)
+        if "failed" in tally:
+            raise RuntimeError(f"the attacker failed: {tally['failed']}")
         t1 = now()
         await asyncio.sleep(SETTLE_S)
         stop_sampling.set()
         await sampler
         rss_after = server.rss_mb()
         figures = bystander_figures(watcher.arrivals, t0, t1)
-        metrics = server.metrics()
+        metrics = await loop.run_in_executor(None, server.metrics)
     finally:
         watching.cancel()
         await asyncio.gather(watching, return_exceptions=True)
@@ -413,7 +457,13 @@ def bench_hostile(attack: str, seconds: float = 10.0, solver: str = "analytic"
     if attack not in ATTACKS:
         raise ValueError(f"unknown attack {attack!r}; one of {', '.join(ATTACKS)}")
     with TargetServer(solver) as server:
-        return asyncio.run(_measure(server, attack, seconds))
+        return measure_attack(server, attack, seconds)
+
+
+def measure_attack(server: TargetServer, attack: str, seconds: float) -> dict[str, object]:
+    """``attack`` against a running ``server`` (tests share one between attacks; the
+    command starts a fresh one for each, so that RSS growth is the attack's alone)."""
+    return asyncio.run(_measure(server, attack, seconds))
 
 
 def format_hostile_table(doc: dict[str, Any]) -> str:

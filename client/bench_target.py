@@ -8,6 +8,7 @@ time, and its RSS and open file descriptors are read from /proc by its pid.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import multiprocessing as mp
 import os
 from multiprocessing.connection import Connection
@@ -29,16 +30,21 @@ def _serve(pipe: Connection, solver: str) -> None:
         session = Session(solver=solver)
 
         def on_message() -> None:  # "metrics": the counters now; anything else: stop
-            if pipe.recv() == "metrics":
-                pipe.send(session.metrics.as_json())
-            else:
-                stop.set()
+            try:
+                if pipe.recv() == "metrics":
+                    pipe.send(session.metrics.as_json())
+                    return
+            except (EOFError, OSError):  # the parent is gone
+                pass
+            loop.remove_reader(pipe.fileno())
+            stop.set()
 
         loop.add_reader(pipe.fileno(), on_message)
         await run_server("127.0.0.1", 0, session, stop, ready=pipe.send,
                          drain_timeout=2.0)
         loop.remove_reader(pipe.fileno())
-        pipe.send(session.metrics.as_json())
+        with contextlib.suppress(OSError):
+            pipe.send(session.metrics.as_json())
 
     asyncio.run(main())
 

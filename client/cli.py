@@ -40,6 +40,11 @@ def _limit(text: str) -> str:
     return text
 
 
+# client.bench_hostile.ATTACKS, without importing it (and websockets) for every command
+_HOSTILE_ATTACKS = ("calibrate-flood", "bad-messages", "big-frames", "poison-time",
+                    "poison-calibration")
+
+
 def _positive_ints(text: str) -> list[int]:
     try:
         values = [int(v) for v in text.split(",") if v.strip()]
@@ -209,6 +214,26 @@ def _parser() -> argparse.ArgumentParser:
     bu.add_argument("--runs", type=arg.positive_int, default=5,
                     help="fresh processes per command")
     bu.add_argument("--json", action="store_true", help="print one JSON document")
+    bk = bsub.add_parser("soak", help="the server's RSS, open files and rates over minutes "
+                         "of players and spectators, as a table and a plot")
+    bk.add_argument("--minutes", type=arg.positive_float, required=True,
+                    help="how long the players stream")
+    bk.add_argument("--players", type=arg.positive_int, default=8,
+                    help="players replaying the built-in walk at 90 Hz")
+    bk.add_argument("--spectators", type=arg.count, default=8, help="headless spectators")
+    bk.add_argument("--interval", type=arg.positive_float, default=None,
+                    help="seconds between samples (default: 5, less for short runs)")
+    bk.add_argument("--plot", type=arg.out_file, default=None, metavar="FILE.png",
+                    help="also draw RSS, open files and rates over time to this PNG")
+    bk.add_argument("--json", action="store_true", help="print one JSON document")
+    bh = bsub.add_parser("hostile", help="what one hostile client costs everyone else "
+                         "(issue 14's attacks, figures beside their targets)")
+    bh.add_argument("--attack", required=True, choices=_HOSTILE_ATTACKS,
+                    help="calibrate-flood, bad-messages and big-frames run in another room "
+                         "than the bystanders; poison-time and poison-calibration in theirs")
+    bh.add_argument("--seconds", type=arg.positive_float, default=10.0,
+                    help="how long the attacker attacks")
+    bh.add_argument("--json", action="store_true", help="print one JSON document")
     for child in arg.subparsers(p):  # the global options may follow the command too
         child.add_argument("--log-level", choices=arg.LOG_LEVELS, default=argparse.SUPPRESS,
                            help="as posecast --log-level")
@@ -293,6 +318,20 @@ def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
         result = bench_server(args.counts, args.seconds,
                               helper=None if args.helper else False)
         print(json.dumps(result) if args.json else format_server_table(result))
+        return 0
+    if args.command == "bench" and args.bench == "soak":
+        from posecast.client.bench_soak import bench_soak, format_soak_table, plot_soak
+
+        doc = bench_soak(args.minutes, args.players, args.spectators, args.interval)
+        if args.plot is not None:
+            plot_soak(doc, args.plot)
+        print(json.dumps(doc) if args.json else format_soak_table(doc))
+        return 0
+    if args.command == "bench" and args.bench == "hostile":
+        from posecast.client.bench_hostile import bench_hostile, format_hostile_table
+
+        doc = bench_hostile(args.attack, args.seconds)
+        print(json.dumps(doc) if args.json else format_hostile_table(doc))
         return 0
     if args.command == "bench" and args.bench == "startup":
         from posecast.client.bench_startup import bench_startup, format_startup_table

@@ -404,5 +404,6 @@ def test_oversize_messages(live: LiveServer, size: int, first: bool) -> None:
     data = msgpack.packb({"type": "ping", "t0": 1.0, "pad": b"x" * size})
     outcome = live.call(_probe(live.url, data, first))
     _check(outcome, data)
-    assert outcome.errors == ["too_large"] or outcome.close_code == 1009, outcome
+    # (the probe's own calibration may be refused too: the server limits them per room)
+    assert "too_large" in outcome.errors or outcome.close_code == 1009, outcome
     _unharmed(live)
