@@ -43,7 +43,7 @@ class DemoResult:
     spectators: int
     seconds: float
     # tracker frames the players sent: each is exactly one of solved, superseded,
-    # discarded, rejected (the server's counts, read once it stopped)
+    # discarded, rejected, unsendable (the server's counts, read once it stopped)
     frames_sent: int
     frames_solved: int
     frames_delivered: int  # received, summed over the spectators
@@ -55,6 +55,8 @@ class DemoResult:
     frames_superseded: int = 0  # a newer frame of the same player came before its solve
     frames_discarded: int = 0  # unsolved: its player left first
     frames_rejected: int = 0  # refused by the server with an Error
+    # solved, but its row would fail a spectator's checks: dropped from its batch alone
+    frames_unsendable: int = 0
     viewer: bool = False  # --render: one more spectator, whose drops frames_dropped counts
 
     def as_json(self) -> dict[str, object]:
@@ -65,7 +67,8 @@ class DemoResult:
                 "frames_dropped": self.frames_dropped,
                 "frames_superseded": self.frames_superseded,
                 "frames_discarded": self.frames_discarded,
-                "frames_rejected": self.frames_rejected, "batches": self.batches,
+                "frames_rejected": self.frames_rejected,
+                "frames_unsendable": self.frames_unsendable, "batches": self.batches,
                 "rejected": self.rejected, "frames_rendered": self.rendered,
                 "latency_ms": self.latency.summary()}
 
@@ -73,11 +76,13 @@ class DemoResult:
         """The counts for a reader: what each means, and whether the two identities the
         demo's test asserts hold."""
         rows = [("sent", self.frames_sent, "tracker frames the players sent"),
-                ("solved", self.frames_solved, "solved by the server"),
+                ("solved", self.frames_solved, "solved by the server and sent"),
                 ("superseded", self.frames_superseded, "a player's newer frame arrived "
                  "before the older one was solved; the newer one is solved"),
                 ("discarded", self.frames_discarded, "not solved: its player left first"),
                 ("rejected", self.frames_rejected, "refused by the server with an error"),
+                ("unsendable", self.frames_unsendable, "solved, but a spectator would "
+                 "refuse its row (e.g. a root beyond the world): dropped alone"),
                 ("delivered", self.frames_delivered, "received, summed over the spectators"),
                 ("dropped", self.frames_dropped, "not sent to a spectator: a newer frame of "
                  "the avatar replaced it in its outbox (latest wins)")]
@@ -86,8 +91,9 @@ class DemoResult:
                  f"{self.seconds:g} s; avatar-frames:"]
         lines += [f"  {name:<10} {n:>{width}}  {what}" for name, n, what in rows]
         gap = self.frames_sent - (self.frames_solved + self.frames_superseded
-                                  + self.frames_discarded + self.frames_rejected)
-        lines.append("  sent = solved + superseded + discarded + rejected: "
+                                  + self.frames_discarded + self.frames_rejected
+                                  + self.frames_unsendable)
+        lines.append("  sent = solved + superseded + discarded + rejected + unsendable: "
                      + ("yes" if gap == 0 else f"no, {gap:+d}"))
         if self.viewer:  # its frames are not in delivered, its drops are in dropped
             lines.append("  (dropped includes the --render viewer's)")
@@ -332,6 +338,7 @@ def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
         frames_superseded=int(metrics.get("frames_superseded", 0)),  # type: ignore[call-overload]
         frames_discarded=int(metrics.get("frames_discarded", 0)),  # type: ignore[call-overload]
         frames_rejected=int(metrics.get("frames_rejected", 0)),  # type: ignore[call-overload]
+        frames_unsendable=int(metrics.get("frames_unsendable", 0)),  # type: ignore[call-overload]
         viewer=render is not None)
 
 

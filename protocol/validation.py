@@ -271,28 +271,71 @@ _RO = {name: types.Array(dtype, 1, "C", readonly=True) for name, dtype in
         ("f4", types.float32))}
 
 
+@njit(types.boolean(types.int64, types.int64, types.int64, types.float64, types.float64,
+                    types.float64, types.float64, types.float64, types.float64), cache=True)
+def row_ok(avatar_id: int, seq: int, joints: int, x: float, y: float, z: float,
+           t_capture: float, t_server_receive: float, t_solved: float) -> bool:
+    """One AvatarBatch row as a spectator checks it: the one definition of a valid row,
+    for the decoder (``batch_columns_ok``) and the server's last look before it sends
+    (``sendable_rows``). The root is the wire's (float32, widened): ids and seqs >= 0,
+    joints in 1..MAX_JOINTS, the root finite and within MAX_POSITION_M, times finite."""
+    return (avatar_id >= 0 and seq >= 0 and 1 <= joints <= MAX_JOINTS
+            and x * x + y * y + z * z <= _MAX_POSITION2  # NaN fails too
+            and math.isfinite(t_capture) and math.isfinite(t_server_receive)
+            and math.isfinite(t_solved))
+
+
 @njit(types.boolean(_RO["i8"], _RO["i8"], _RO["u2"], _RO["f8"], _RO["f4"], types.int64),
       cache=True)
 def batch_columns_ok(ids: IntArray, seqs: IntArray, counts: NDArray[np.uint16],
                      times: NDArray[np.float64], roots: NDArray[np.float32],
                      rotation_bytes: int) -> bool:
     """Every check of an AvatarBatch's packed columns but distinct ids and the rotations'
-    bits, in one compiled pass (numpy took a call per check): ids and seqs >= 0, joint
-    counts in 1..MAX_JOINTS adding up to the rotation bytes, finite times, roots (float32
-    rows of 3) finite and within MAX_POSITION_M. Pass/fail only: the field validators
-    explain a failure."""
+    bits, in one compiled pass (numpy took a call per check): ``row_ok`` for each row
+    (``times``: the t_capture, t_server_receive and t_solved columns one after the
+    other), and joint counts adding up to the rotation bytes. Pass/fail only: the field
+    validators explain a failure."""
+    n = ids.shape[0]
+    if times.shape[0] != 3 * n or roots.shape[0] != 3 * n:
+        return False
     total = 0
-    for b in range(ids.shape[0]):
-        if ids[b] < 0 or seqs[b] < 0 or counts[b] < 1 or counts[b] > MAX_JOINTS:
+    for b in range(n):
+        if not row_ok(ids[b], seqs[b], int(counts[b]), float(roots[3 * b]),
+                      float(roots[3 * b + 1]), float(roots[3 * b + 2]), times[b],
+                      times[n + b], times[2 * n + b]):
             return False
         total += counts[b]
-        x, y, z = float(roots[3 * b]), float(roots[3 * b + 1]), float(roots[3 * b + 2])
-        if not x * x + y * y + z * z <= _MAX_POSITION2:  # NaN fails too
-            return False
-    for t in times:
-        if not math.isfinite(t):
-            return False
     return BYTES_PER_ROTATION * total == rotation_bytes
+
+
+@njit(types.int64(types.Array(types.float64, 2, "A", readonly=True),
+                  types.Array(types.float64, 3, "A", readonly=True),
+                  types.Array(types.float64, 1, "A", readonly=True),
+                  types.Array(types.float64, 1, "A", readonly=True), types.float64,
+                  types.boolean[::1]), cache=True)
+def sendable_rows(roots: NDArray[np.float64], rotations: NDArray[np.float64],
+                  t_capture: NDArray[np.float64], t_server_receive: NDArray[np.float64],
+                  t_solved: float, out: NDArray[np.bool_]) -> int:
+    """Which rows of a solved batch (roots (B, 3), rotations (B, J, 4)) a spectator would
+    accept, into ``out``; returns how many it would refuse. ``row_ok`` on the root as
+    the wire carries it (float32), and rotations that quantize to what a decoder takes
+    (finite, unit within the tolerance). The server's ids and seqs are valid by
+    construction. One compiled pass over the batch: no Python per row."""
+    bad = 0
+    joints = rotations.shape[1]
+    for b in range(roots.shape[0]):
+        ok = row_ok(0, 0, joints, float(np.float32(roots[b, 0])),
+                    float(np.float32(roots[b, 1])), float(np.float32(roots[b, 2])),
+                    t_capture[b], t_server_receive[b], t_solved)
+        for j in range(joints):
+            if not ok:
+                break
+            q = rotations[b, j]
+            ok = abs(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3] - 1.0) \
+                <= _NORM2_TOL  # NaN fails too
+        out[b] = ok
+        bad += not ok
+    return bad
 
 
 # --------------------------------------------------------------------------- errors

@@ -110,7 +110,8 @@ class Session:
     def room(self, name: str) -> Room:
         if name not in self.rooms:  # rooms are created on first join
             self.rooms[name] = Room(name, self.avatars, self.metrics,
-                                    bursts=self.busy.bursts if self.busy else None)
+                                    bursts=self.busy.bursts if self.busy else None,
+                                    limits=self.limits)
         return self.rooms[name]
 
     async def handle(self, ws: ServerConnection) -> None:

@@ -70,6 +70,13 @@ class ServerLimits:
     log_first_rejections: int = 3
     log_interval_s: float = 10.0
     log_lines_per_interval: int = 50
+    # a tracker frame's t_capture + clock_offset (its capture on the server clock) must
+    # be within this of its arrival: a synced player's is milliseconds off; one an hour
+    # off, or infinite, is forged and would spoil every viewer's latency figures
+    capture_skew_s: float = 60.0
+    # every device of a T-pose within this of the head: a body, not a kilometre-wide
+    # rig whose solved roots leave the protocol's world (MAX_POSITION_M)
+    body_extent_m: float = 3.0
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):

@@ -10,13 +10,16 @@ from dataclasses import dataclass, field
 @dataclass
 class Metrics:
     connections: int = 0
-    # every tracker frame received ends as exactly one of the four below (while its
+    # every tracker frame received ends as exactly one of the five below (while its
     # burst is open, none yet; a stopped server has none open)
     frames_received: int = 0
     frames_superseded: int = 0  # a player's newer frame replaced an unsolved one
     frames_discarded: int = 0  # unsolved: its avatar left or recalibrated, or shutdown
     frames_rejected: int = 0  # answered with an Error (not calibrated, solver refused)
-    frames_solved: int = 0
+    frames_solved: int = 0  # and sent: in a batch offered to the room's spectators
+    # solved, but a spectator's checks would refuse its row (a root beyond the world's
+    # bound): dropped alone, so that the rest of its batch goes out
+    frames_unsendable: int = 0
     batches: int = 0
     # every solved avatar-frame offered to a spectator is exactly one of these two:
     # handed to its socket, or never sent (a newer one of the avatar replaced it in the
@@ -33,7 +36,8 @@ class Metrics:
                 "frames_superseded": self.frames_superseded,
                 "frames_discarded": self.frames_discarded,
                 "frames_rejected": self.frames_rejected,
-                "frames_solved": self.frames_solved, "batches": self.batches,
+                "frames_solved": self.frames_solved,
+                "frames_unsendable": self.frames_unsendable, "batches": self.batches,
                 "frames_delivered": self.frames_delivered,
                 "frames_dropped": self.frames_dropped, "rejected": dict(self.rejected),
                 "limited": dict(self.limited)}

@@ -33,13 +33,16 @@ from posecast.protocol import (
 from posecast.protocol.arrivals import ArrivalStamps
 from posecast.protocol.codec import encode_avatar_batch
 from posecast.protocol.messages import TrackerPoses
+from posecast.protocol.validation import sendable_rows
 from posecast.server.avatars import AvatarSolver
 from posecast.server.busy import OpenBursts
 from posecast.server.cadence import Cadence
 from posecast.server.clock import now
+from posecast.server.limits import ServerLimits
 from posecast.server.metrics import Metrics
 from posecast.server.outbox import Outbox
 from posecast.solver.calibration import Calibration
+from posecast.solver.plausible import check_t_pose
 
 
 class SharedBatch:
@@ -123,6 +126,8 @@ class Room:
     # the server's count of open bursts, when it busy-polls (server.busy): it pauses
     # while one is open
     bursts: OpenBursts | None = None
+    # the capture-time window and a T-pose's extent (derived values checked on input)
+    limits: ServerLimits = field(default_factory=ServerLimits)
     _scheduled: bool = False
     _arrived: bool = False  # a frame came in during the current pass of the event loop
     _burst_start: float = 0.0
@@ -136,6 +141,8 @@ class Room:
 
     def calibrate(self, avatar: Avatar, frame_roles: tuple[str, ...],
                   poses: np.ndarray) -> Calibration:
+        # before anything changes: a refused T-pose leaves the last calibration in place
+        check_t_pose(frame_roles, poses[:, :3], self.limits.body_extent_m)
         cal = self.solver.calibrate(avatar.avatar_id, frame_roles, poses[:, :3], poses[:, 3:])
         sk = self.solver.rig.skeleton
         avatar.info = AvatarInfo(avatar_id=avatar.avatar_id, display_name=avatar.display_name,
@@ -153,7 +160,13 @@ class Room:
                t_received: float) -> None:
         """Queue a player's frame (latest wins) and make sure a solve is coming. Its
         targets are computed now, while the rest of the burst is still arriving; a
-        ValueError (a driving device missing) rejects this frame alone."""
+        ValueError (a driving device missing, a capture time that is not near the server's
+        clock) rejects this frame alone."""
+        t_capture = frame.t_capture_server  # the client's sum: it may overflow
+        if not abs(t_capture - t_received) <= self.limits.capture_skew_s:  # NaN, inf fail
+            raise ValueError(f"tracker_frame.t_capture + clock_offset = {t_capture!r} is "
+                             f"not within {self.limits.capture_skew_s:g} s of the server's "
+                             f"clock ({t_received:.3f}): sync the clock with pings first")
         self.solver.stage(avatar_id, frame.roles, frame.poses)
         if avatar_id in self._pending:
             self.metrics.frames_superseded += 1
@@ -242,9 +255,25 @@ class Room:
         ids = [a for a, _, _ in pending]
         solved = self.solver.solve_staged(ids)
         t_solved = now()
-        shared = SharedBatch(ids, [f.seq for _, f, _ in pending], solved.root,
-                             solved.rotations, [f.t_capture_server for _, f, _ in pending],
-                             [t for _, _, t in pending], t_solved)
+        t_capture = [f.t_capture_server for _, f, _ in pending]
+        t_received = [t for _, _, t in pending]
+        roots, rotations = solved.root, solved.rotations
+        # the spectators' own row checks: a row they would refuse is dropped alone,
+        # never the batch (one compiled pass over the batch)
+        keep = np.empty(len(pending), dtype=np.bool_)
+        unsendable = sendable_rows(roots, rotations, np.array(t_capture),
+                                   np.array(t_received), t_solved, keep)
+        if unsendable:
+            self.metrics.frames_unsendable += unsendable
+            pending = [p for p, k in zip(pending, keep.tolist(), strict=True) if k]
+            if not pending:
+                return
+            ids = [a for a, _, _ in pending]
+            t_capture = [f.t_capture_server for _, f, _ in pending]
+            t_received = [t for _, _, t in pending]
+            roots, rotations = roots[keep], rotations[keep]
+        shared = SharedBatch(ids, [f.seq for _, f, _ in pending], roots, rotations,
+                             t_capture, t_received, t_solved)
         self.metrics.frames_solved += len(pending)
         self.metrics.batches += 1
         self.deliver(shared)

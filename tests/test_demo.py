@@ -27,10 +27,13 @@ def test_demo_delivers_every_solved_frame_to_every_spectator(
     assert 0 < doc["frames_sent"] <= 2 * (2 * 90 + 2)
     # exact accounting, whatever the load: the server solves every frame sent, but one
     # that a newer frame of the same player superseded before its burst was solved (or
-    # one still unsolved when its player left); the demo's players send none it rejects
+    # one still unsolved when its player left); the demo's players send none it rejects,
+    # nor any whose solved row a spectator would refuse (unsendable)
     assert doc["frames_rejected"] == 0 and doc["rejected"] == {}
+    assert doc["frames_unsendable"] == 0
     assert doc["frames_sent"] == (doc["frames_solved"] + doc["frames_superseded"]
-                                  + doc["frames_discarded"])
+                                  + doc["frames_discarded"] + doc["frames_rejected"]
+                                  + doc["frames_unsendable"])
     # every solved avatar-frame reaches every spectator, but one that a spectator's
     # outbox replaced with a newer frame of the avatar before it could send it
     assert doc["frames_solved"] > 0
