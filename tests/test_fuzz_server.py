@@ -45,6 +45,7 @@ from posecast.protocol import (
 )
 from posecast.protocol.codec import encode_tracker_frame
 from posecast.server.app import Session
+from posecast.server.clock import now
 
 T = TypeVar("T")
 TIMEOUT = 10.0  # generous: the machine is shared; a wait that passes it is a hang
@@ -254,9 +255,10 @@ class LiveServer:
             seq = 0
             try:
                 while True:
-                    roles, poses, t = SAMPLES[seq % len(SAMPLES)]
-                    await ws.send(encode_tracker_frame(seq, roles, poses, t + seq / 90.0,
-                                                       0.0))
+                    roles, poses, _ = SAMPLES[seq % len(SAMPLES)]
+                    # captured now: SAMPLES' times are from import, and a frame over
+                    # capture_skew_s (60 s) from the server's clock is refused
+                    await ws.send(encode_tracker_frame(seq, roles, poses, now(), 0.0))
                     seq += 1
                     await asyncio.sleep(1 / 90.0)
             finally:
