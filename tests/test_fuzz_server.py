@@ -205,6 +205,7 @@ class LiveServer:
         self.session = Session(reconnect_grace=0.0)
         self.url = ""
         self.bystander_frames = 0
+        self.bystander_ends: list[str] = []  # how a bystander's connection ended, if it did
         self._ready = threading.Event()
         self._failed: BaseException | None = None  # why the thread's loop ended early
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -247,6 +248,18 @@ class LiveServer:
             await asyncio.gather(*tasks, return_exceptions=True)
 
     async def _bystander_player(self) -> None:
+        try:
+            await self._play()
+        except ConnectionClosed as exc:
+            self.bystander_ends.append(f"player: {exc}")
+
+    async def _bystander_spectator(self) -> None:
+        try:
+            await self._watch()
+        except ConnectionClosed as exc:
+            self.bystander_ends.append(f"spectator: {exc}")
+
+    async def _play(self) -> None:
         async with connect(self.url, compression=None) as ws:
             await ws.send(_hello("player", BYSTANDER_ROOM, "bystander"))
             await ws.recv()
@@ -264,12 +277,13 @@ class LiveServer:
             finally:
                 reader.cancel()
 
-    async def _bystander_spectator(self) -> None:
+    async def _watch(self) -> None:
         async with connect(self.url, compression=None, max_size=None) as ws:
             await ws.send(_hello("spectator", BYSTANDER_ROOM, "watcher"))
             async for data in ws:
                 if isinstance(data, bytes) and data[:64].find(b"avatar_batch") >= 0:
                     self.bystander_frames += 1
+            self.bystander_ends.append(f"spectator: closed {ws.close_code} {ws.close_reason}")
 
 
 async def _discard(ws: ClientConnection) -> None:
@@ -362,7 +376,11 @@ def _unharmed(live: LiveServer) -> None:
             await asyncio.sleep(0.05)
 
     live.call(join())
-    live.call(asyncio.wait_for(frames_flow(), 3 * TIMEOUT))
+    try:
+        live.call(asyncio.wait_for(frames_flow(), 3 * TIMEOUT))
+    except TimeoutError:
+        raise AssertionError(f"the bystander received no frames for {3 * TIMEOUT:g} s; "
+                             f"its connections: {live.bystander_ends or 'open'}") from None
 
 
 # --------------------------------------------------------------------------- the tests
