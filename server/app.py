@@ -61,6 +61,7 @@ RECONNECT_GRACE = 30.0  # seconds a disconnected player's avatar waits for its t
 # on stop, how long the open bursts and the spectators' outboxes get to empty before the
 # connections close (a spectator that stopped reading would hold the stop forever)
 DRAIN_TIMEOUT = 2.0
+FLOOD_CLOSE_S = 1.0  # a flooding client's close handshake gets this long, then its socket goes
 DRAIN_POLL_S = 0.001
 
 
@@ -326,9 +327,22 @@ class Session:
             room.remove_avatar(avatar.avatar_id)
 
     def _close_soon(self, ws: ServerConnection, code: int, reason: str) -> None:
-        task = asyncio.get_running_loop().create_task(ws.close(code, reason))
+        """Close a connection that floods the server: stop reading it at once (what it
+        has queued would cost everyone else the time to read and reject it), send the
+        close frame with the reason, and drop the socket if the close has not finished
+        within FLOOD_CLOSE_S (its close reply waits behind its flood, unread)."""
+        with contextlib.suppress(AttributeError, RuntimeError):
+            ws.transport.pause_reading()
+        task = asyncio.get_running_loop().create_task(self._close_or_drop(ws, code, reason))
         self._closing.add(task)  # held until done: the loop keeps only weak references
         task.add_done_callback(self._closing.discard)
+
+    @staticmethod
+    async def _close_or_drop(ws: ServerConnection, code: int, reason: str) -> None:
+        try:
+            await asyncio.wait_for(ws.close(code, reason), FLOOD_CLOSE_S)
+        except TimeoutError:
+            ws.transport.abort()
 
     def _limited(self, limit: str, per_s: float) -> ProtocolError:
         self.metrics.limited[limit] += 1
