@@ -12,6 +12,7 @@ from collections.abc import Awaitable, Callable
 import msgpack
 import pytest
 from conftest import serving
+from test_server import receive_type
 from websockets.asyncio.client import ClientConnection, connect
 
 from posecast.protocol import (
@@ -54,13 +55,6 @@ async def join(url: str, role: str) -> ClientConnection:
     return ws
 
 
-async def reply(ws: ClientConnection, kind: type) -> object:
-    """The next message of a kind (a spectator also gets a roster first)."""
-    while True:
-        msg = decode(await asyncio.wait_for(ws.recv(), TIMEOUT))
-        if isinstance(msg, kind):
-            return msg
-
 
 def nested(depth: int, innermost: bytes = b"\x01") -> bytes:
     """msgpack bytes of a value nested ``depth`` arrays deep (msgpack-python itself will
@@ -97,16 +91,16 @@ def test_every_hostile_message_gets_an_error_and_the_connection_carries_on(
         ws = await join(url, role)
         for what, data in HOSTILE.items():
             await ws.send(data)
-            error = await reply(ws, Error)
+            error = await receive_type(ws, Error)
             assert isinstance(error, Error), what
             assert 0 < len(error.message) <= MAX_TEXT_CHARS, what
             assert error.message.isprintable(), (what, error.message)
             # and the connection is still there: a ping is answered
             await ws.send(encode(Ping(t0=1.0)))
-            assert isinstance(await reply(ws, Pong), Pong), what
+            assert isinstance(await receive_type(ws, Pong), Pong), what
         long_name = HOSTILE["field name of 3000 chars"]
         await ws.send(long_name)
-        error = await reply(ws, Error)
+        error = await receive_type(ws, Error)
         assert isinstance(error, Error)
         assert "(3000 chars)" in error.message  # the name shown as its start and length
         await ws.close()

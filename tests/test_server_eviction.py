@@ -12,6 +12,7 @@ from collections.abc import AsyncIterator
 
 import numpy as np
 import pytest
+from test_server import receive_type
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed
 
@@ -79,12 +80,6 @@ async def join(url: str, role: str, room: str = ROOM, token: str | None = None,
     return ws
 
 
-async def next_of(ws: ClientConnection, kind: type) -> object:
-    while True:
-        msg = decode(await asyncio.wait_for(ws.recv(), TIMEOUT))
-        if isinstance(msg, kind):
-            return msg
-
 
 def frame(rec: ViveRecording, seq: int) -> bytes:
     i = 1 + seq % (len(rec.positions) - 1)
@@ -122,15 +117,15 @@ def test_frames_out_of_order_are_refused_and_a_reconnect_starts_again(
                 await player.send(frame(motion, seq))
             for seq in (5, 3):  # repeated, then going back
                 await player.send(frame(motion, seq))
-                error = await next_of(player, Error)
+                error = await receive_type(player, Error)
                 assert isinstance(error, Error)
                 assert error.code == "out_of_order" and f"seq: {seq} " in error.message
             await player.send(frame(motion, 6))  # and on it goes
             await player.send(encode(Ping(t0=0.0)))
-            assert isinstance(await next_of(player, Pong), Pong)  # no error came before
+            assert isinstance(await receive_type(player, Pong), Pong)  # no error came before
             seen: set[int] = set()
             while 6 not in seen:
-                batch = await next_of(viewer, AvatarBatch)
+                batch = await receive_type(viewer, AvatarBatch)
                 assert isinstance(batch, AvatarBatch)
                 seen.update(int(s) for s in batch.seqs)
             assert 3 not in seen  # the refused frame was never solved
@@ -139,7 +134,7 @@ def test_frames_out_of_order_are_refused_and_a_reconnect_starts_again(
             again = await join(url, "player", token="tok-seq")
             await again.send(frame(motion, 0))
             await again.send(encode(Ping(t0=0.0)))
-            assert isinstance(await next_of(again, Pong), Pong)
+            assert isinstance(await receive_type(again, Pong), Pong)
             await again.close()
             await viewer.close()
         assert session.metrics.rejected["out_of_order"] == 2
@@ -170,9 +165,9 @@ def test_an_idle_player_is_closed_and_its_avatar_leaves(motion: ViveRecording) -
             viewer = await join(url, "spectator")
             player = await join(url, "player", token="tok-idle")
             await player.send(calibrate(motion))
-            roster = await next_of(viewer, AvatarRoster)
+            roster = await receive_type(viewer, AvatarRoster)
             while isinstance(roster, AvatarRoster) and not roster.avatars:  # the one at join
-                roster = await next_of(viewer, AvatarRoster)
+                roster = await receive_type(viewer, AvatarRoster)
             assert isinstance(roster, AvatarRoster) and len(roster.avatars) == 1
             avatar_id = roster.avatars[0].avatar_id
             for seq in range(3):
@@ -190,7 +185,7 @@ def test_an_idle_player_is_closed_and_its_avatar_leaves(motion: ViveRecording) -
             assert closing.rcvd is not None and closing.rcvd.code == 1008
             assert "idle" in closing.rcvd.reason
             while True:  # then, after the reconnect grace, its avatar leaves the roster
-                roster = await next_of(viewer, AvatarRoster)
+                roster = await receive_type(viewer, AvatarRoster)
                 assert isinstance(roster, AvatarRoster)
                 if avatar_id in roster.removed:
                     break
