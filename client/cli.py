@@ -32,9 +32,11 @@ STOPPED = ("Ctrl-C (SIGINT) or SIGTERM stops it cleanly: it prints its summary a
 
 
 def _limit(text: str) -> str:
-    """One NAME=VALUE of ``serve --limit``, checked against ServerLimits' fields."""
+    """One NAME=VALUE of ``serve --limit``, checked against ServerLimits' fields. Limits
+    that go together (avatars_per_room >= players_per_room) are checked together in
+    _serve: one at a time, raising both (in a config file's [limits] too) would fail."""
     try:
-        ServerLimits().with_text([text])
+        ServerLimits(players_per_room=1, avatars_per_room=2**62).with_text([text])
     except ValueError as err:
         raise argparse.ArgumentTypeError(str(err)) from None
     return text
@@ -85,6 +87,10 @@ def _parser() -> argparse.ArgumentParser:
                    "(make setup runs it; other commands compile what they lack on first use)")
 
     sv = sub.add_parser("serve", help="host sessions: the websockets server")
+    sv.add_argument("--config", type=arg.existing_file, default=None, metavar="FILE.toml",
+                    help="take any of these options from a TOML file (keys: the option "
+                         "names, e.g. port = 8765, busy_poll = true, a [limits] table); "
+                         "flags given here override it; deploy/posecast.toml lists them all")
     sv.add_argument("--host", default="127.0.0.1",
                     help="address to listen on (0.0.0.0 for every interface)")
     sv.add_argument("--port", type=arg.port, default=8765,
@@ -242,7 +248,10 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    parser = _parser()
+    args = parser.parse_args(argv)
+    if getattr(args, "config", None) is not None:  # the file's values become defaults
+        args = _with_config(parser, args, argv)
     if args.command is None or (args.command == "bench" and args.bench is None):
         args.show_help()
         return 0
@@ -256,6 +265,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:  # process-wide: tests call main() many times, each with its own stderr
         notice.close()
         notice.uninstall()
+
+
+def _with_config(parser: argparse.ArgumentParser, args: argparse.Namespace,
+                 argv: Sequence[str] | None) -> argparse.Namespace:
+    """The command line parsed again over ``--config``'s values; a bad file is one line
+    naming its line and key, exit 2, as a bad flag."""
+    from posecast.client.config_file import ConfigError, apply_config
+
+    command = next(child for child in arg.subparsers(parser)
+                   if child.prog == f"{parser.prog} {args.command}")
+    try:
+        apply_config(parser, command, args.config)
+    except ConfigError as err:
+        command.error(f"--config {err}")
+    return parser.parse_args(argv)
 
 
 def _configure_logging(command: str, level_name: str | None) -> None:
@@ -412,10 +436,15 @@ def _session_words(err: SessionError) -> str:
 def _serve(args: argparse.Namespace) -> int:
     from posecast.server.app import Session, install_fast_loop, run_server
 
+    try:
+        limits = ServerLimits().with_text(args.limit)
+    except ValueError as err:  # limits that do not go together (see _limit)
+        print(f"posecast serve: --limit: {err} (see posecast serve --help)", file=sys.stderr)
+        return 2
     install_fast_loop()
     session = Session(solver=args.solver, busy=args.busy_poll,
                       helper=None if args.helper else False,
-                      limits=ServerLimits().with_text(args.limit))
+                      limits=limits)
     try:
         asyncio.run(run_server(args.host, args.port, session, handle_signals=True))
     except OSError as err:
