@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import NoReturn
 from urllib.parse import urlsplit
 
+from posecast.client.tls import CAFileError, client_tls_context
 from posecast.protocol.validation import (
     MAX_NAME_CHARS,
     MAX_RATE_HZ,
@@ -212,6 +213,16 @@ def existing_file(text: str) -> Path:
     if not path.is_file():
         why = "is a folder, not a file" if path.is_dir() else "no such file"
         raise argparse.ArgumentTypeError(f"{why}: {text!r}")
+    return path
+
+
+def ca_file(text: str) -> Path:
+    """PEM CA certificates that a wss:// server's certificate must chain to."""
+    path = existing_file(text)
+    try:
+        client_tls_context(path)
+    except CAFileError as err:
+        raise argparse.ArgumentTypeError(f"{err.why}: {text!r}") from None
     return path
 
 

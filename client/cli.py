@@ -13,6 +13,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
+from urllib.parse import urlsplit
 
 from posecast import __version__
 from posecast.client import arguments as arg
@@ -22,6 +23,8 @@ from posecast.server.limits import ServerLimits
 from posecast.solver.ik import DEFAULT_SOLVER, SOLVERS, SolverOptions
 
 if TYPE_CHECKING:
+    import ssl
+
     from posecast.client.connection import SessionError
     from posecast.client.player import Player
     from posecast.client.spectator import Spectator
@@ -45,6 +48,17 @@ def _limit(text: str) -> str:
 # client.bench_hostile.ATTACKS, without importing it (and websockets) for every command
 _HOSTILE_ATTACKS = ("calibrate-flood", "bad-messages", "big-frames", "poison-time",
                     "poison-calibration")
+
+
+def _origins(text: str) -> list[str]:
+    """``serve --origins``: comma-separated scheme://host[:port] values."""
+    from posecast.server.tls import check_origin
+
+    try:
+        return [check_origin(v.strip()) for v in text.split(",") if v.strip()] or [
+            check_origin(text)]
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
 
 
 def _positive_ints(text: str) -> list[int]:
@@ -111,11 +125,25 @@ def _parser() -> argparse.ArgumentParser:
                          "defaults: " + ", ".join(f"{name}={value}" for name, value
                                                   in vars(defaults).items()))
 
+    sv.add_argument("--certfile", type=arg.existing_file, default=None,
+                    help="serve wss:// (TLS 1.2+) with this PEM certificate (then any "
+                         "intermediates); needs --keyfile")
+    sv.add_argument("--keyfile", type=arg.existing_file, default=None,
+                    help="the certificate's private key, PEM, unencrypted")
+    sv.add_argument("--origins", type=_origins, default=None,
+                    metavar="https://HOST[:PORT],...",
+                    help="browser pages allowed to connect (their Origin header); a "
+                         "client that sends no Origin, as play and view, is always let "
+                         "in (default: every origin)")
+
     pl = sub.add_parser("play", help="join a session as a tracked player",
                         description="Join a room as a player and stream your tracked poses. "
                         + STOPPED)
     pl.add_argument("--server", required=True, type=arg.server_url,
-                    help="the server, ws://HOST:PORT")
+                    help="the server, ws://HOST:PORT (wss:// for TLS)")
+    pl.add_argument("--cafile", type=arg.ca_file, default=None,
+                    help="PEM CA certificates to trust for a wss:// server (a private "
+                         "CA); default: the system's trust store")
     pl.add_argument("--room", required=True, type=arg.room,
                     help="the room to join (made on first join); " + ROOM_NAME_RULE)
     pl.add_argument("--source", default="openvr", type=arg.source,
@@ -141,7 +169,10 @@ def _parser() -> argparse.ArgumentParser:
                         description="Watch a room: every avatar skinned, in a window or "
                         "(--headless) to PNG files. " + STOPPED)
     vw.add_argument("--server", required=True, type=arg.server_url,
-                    help="the server, ws://HOST:PORT")
+                    help="the server, ws://HOST:PORT (wss:// for TLS)")
+    vw.add_argument("--cafile", type=arg.ca_file, default=None,
+                    help="PEM CA certificates to trust for a wss:// server (a private "
+                         "CA); default: the system's trust store")
     vw.add_argument("--room", required=True, type=arg.room,
                     help="the room to watch; " + ROOM_NAME_RULE)
     vw.add_argument("--headless", action="store_true",
@@ -371,6 +402,8 @@ def _view(args: argparse.Namespace) -> int:
     from posecast.client.console import view_summary
     from posecast.client.viewer import GLUnavailableError, NoDisplayError
 
+    if (status := _cafile_without_tls("view", args)) is not None:
+        return status
     watched: list[Spectator] = []
     try:
         stats, signum = asyncio.run(_view_live(args, watched))
@@ -407,12 +440,14 @@ async def _view_live(args: argparse.Namespace, watched: list[Spectator]
     mode, view = Mode(args.mode), ViewMode(args.view)
     run = (run_headless_viewer(args.server, args.room, args.frames or 100, args.out, width,
                                height, interval_ms=1000.0 / args.fps, mode=mode, view=view,
-                               max_rate_hz=args.max_rate, stop=stop,
+                               max_rate_hz=args.max_rate,
+                               cafile=args.cafile, stop=stop,
                                on_spectator=on_spectator)
            if args.headless else
            run_window_viewer(args.server, args.room, width, height, fps=args.fps, mode=mode,
                              view=view, max_rate_hz=args.max_rate, frames=args.frames,
-                             screenshot=args.screenshot, stop=stop,
+                             screenshot=args.screenshot,
+                             cafile=args.cafile, stop=stop,
                              on_spectator=on_spectator))
     try:
         return await run_until_signal(run, stop)
@@ -441,16 +476,45 @@ def _serve(args: argparse.Namespace) -> int:
     except ValueError as err:  # limits that do not go together (see _limit)
         print(f"posecast serve: --limit: {err} (see posecast serve --help)", file=sys.stderr)
         return 2
+    try:  # before the solver warms up: a bad certificate is told at once
+        tls = _server_tls(args)
+    except ValueError as err:
+        print(f"posecast serve: {err} (see posecast serve --help)", file=sys.stderr)
+        return 2
     install_fast_loop()
     session = Session(solver=args.solver, busy=args.busy_poll,
                       helper=None if args.helper else False,
                       limits=limits)
     try:
-        asyncio.run(run_server(args.host, args.port, session, handle_signals=True))
+        asyncio.run(run_server(args.host, args.port, session, handle_signals=True,
+                               tls=tls, origins=args.origins))
     except OSError as err:
         return _fail("serve", f"cannot listen on {args.host}:{args.port}: {err.strerror}")
     print(json.dumps(session.metrics.as_json()))
     return 0
+
+
+def _server_tls(args: argparse.Namespace) -> ssl.SSLContext | None:
+    """serve's TLS context from --certfile and --keyfile (None: neither); ValueError
+    in one line (server.tls.TLSConfigError) if they cannot serve."""
+    from posecast.server.tls import server_tls_context
+
+    if args.certfile is None and args.keyfile is None:
+        return None
+    if args.certfile is None or args.keyfile is None:
+        given, missing = (("--certfile", "--keyfile") if args.keyfile is None
+                          else ("--keyfile", "--certfile"))
+        raise ValueError(f"{given} needs {missing} too")
+    return server_tls_context(args.certfile, args.keyfile)
+
+
+def _cafile_without_tls(command: str, args: argparse.Namespace) -> int | None:
+    """Status 2 if --cafile came with a ws:// URL, where it would silently do nothing."""
+    if args.cafile is None or urlsplit(args.server).scheme == "wss":
+        return None
+    print(f"posecast {command}: --cafile is for wss:// servers, but --server is "
+          f"{args.server!r} (see posecast {command} --help)", file=sys.stderr)
+    return 2
 
 
 def _play(args: argparse.Namespace) -> int:
@@ -461,6 +525,8 @@ def _play(args: argparse.Namespace) -> int:
     from posecast.client.sources.base import SourceError
     from posecast.solver.readers.errors import FormatError
 
+    if (status := _cafile_without_tls("play", args)) is not None:
+        return status
     try:
         source = open_source(args.source, args.devices, loop=args.loop, offset=args.offset)
     except (SourceError, FormatError) as err:
@@ -468,7 +534,8 @@ def _play(args: argparse.Namespace) -> int:
     delay = args.calibrate_in if args.calibrate_in is not None else (
         3.0 if args.source == "openvr" else 0.0)
     try:
-        player = Player(args.server, args.room, args.name, source, token=args.token)
+        player = Player(args.server, args.room, args.name, source, token=args.token,
+                        cafile=args.cafile)
         signum = asyncio.run(_play_live(player, delay, args.seconds, args.source))
     except SessionError as err:
         return _fail("play", _session_words(err))

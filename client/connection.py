@@ -16,8 +16,10 @@ import contextlib
 import errno
 import logging
 import socket
+from pathlib import Path
 from types import TracebackType
 from typing import Literal
+from urllib.parse import urlsplit
 
 from pydantic import ValidationError
 from websockets.asyncio.client import ClientConnection, connect
@@ -25,12 +27,14 @@ from websockets.asyncio.server import broadcast
 from websockets.exceptions import (
     ConnectionClosed,
     InvalidHandshake,
+    InvalidMessage,
     InvalidStatus,
     InvalidURI,
 )
 from websockets.protocol import State
 
 from posecast.client.sources.base import now
+from posecast.client.tls import CAFileError, client_tls_context, tls_failure
 from posecast.protocol import (
     MAX_MESSAGE_BYTES,
     PROTOCOL_VERSION,
@@ -81,8 +85,11 @@ class SessionError(Exception):
         self.reached = reached  # False: no websocket to the server opened at all
 
 
-def _connect_reason(exc: BaseException) -> str:
+def _connect_reason(exc: BaseException, url: str = "") -> str:
     """Why connecting failed, in words for the user."""
+    tls = tls_failure(exc, urlsplit(url).scheme == "wss")
+    if tls is not None:  # before OSError: ssl.SSLError is one
+        return tls
     # with several addresses (localhost: ::1 and 127.0.0.1) asyncio raises a plain
     # OSError("Multiple exceptions: ...") rather than ConnectionRefusedError
     if isinstance(exc, ConnectionRefusedError) or (
@@ -95,6 +102,10 @@ def _connect_reason(exc: BaseException) -> str:
     if isinstance(exc, InvalidStatus):
         return (f"not a posecast server: HTTP {exc.response.status_code} instead of a "
                 f"websocket upgrade")
+    if isinstance(exc, InvalidMessage) and urlsplit(url).scheme == "ws":
+        # a TLS server drops a plain HTTP request without a word
+        return (f"no websocket reply ({exc}); if the server uses TLS, use wss:// "
+                f"instead of ws://")
     if isinstance(exc, InvalidHandshake):
         return f"websocket handshake failed ({exc})"
     if isinstance(exc, TimeoutError):
@@ -136,16 +147,23 @@ class TimestampedConnection(ArrivalStamps, ClientConnection):
 
 
 async def open_session(url: str, hello: Hello, *, timeout: float = OPEN_TIMEOUT,
-                       max_size: int = MAX_MESSAGE_BYTES) -> Session:
-    """Connect to ``url``, send ``hello``, wait for the Welcome; raise SessionError if not."""
+                       max_size: int = MAX_MESSAGE_BYTES,
+                       cafile: Path | None = None) -> Session:
+    """Connect to ``url``, send ``hello``, wait for the Welcome; raise SessionError if not.
+    A wss:// server's certificate must be vouched for by ``cafile`` (PEM CA
+    certificates) if given, else by the system's trust store."""
+    try:
+        tls = client_tls_context(cafile) if urlsplit(url).scheme == "wss" else None
+    except CAFileError as exc:
+        raise SessionError(url, str(exc), reached=False) from None
     try:
         # compression off: poses are packed floats that deflate barely shrinks, and it
         # costs latency; no proxy: a real-time stream should not detour through one
         ws = await connect(url, compression=None, max_size=max_size, open_timeout=timeout,
-                           close_timeout=CLOSE_TIMEOUT, proxy=None,
+                           close_timeout=CLOSE_TIMEOUT, proxy=None, ssl=tls,
                            create_connection=TimestampedConnection)
     except (OSError, InvalidURI, InvalidHandshake, TimeoutError) as exc:
-        raise SessionError(url, _connect_reason(exc),
+        raise SessionError(url, _connect_reason(exc, url),
                            reached=isinstance(exc, InvalidHandshake)) from None
     try:
         welcome = await _handshake(url, ws, hello, timeout)

@@ -19,6 +19,7 @@ import math
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import cast
 
 from posecast.client.connection import Session, SessionError, make_hello, open_session, stop_task
@@ -169,8 +170,10 @@ class Player:
     """
 
     def __init__(self, url: str, room: str, name: str, source: PoseSource,
-                 token: str | None = None, ticker: Ticker | None = None) -> None:
+                 token: str | None = None, ticker: Ticker | None = None,
+                 cafile: Path | None = None) -> None:
         self.url = url
+        self.cafile = cafile  # a wss:// server's private CA (``open_session``)
         self.hello = make_hello(url, "player", room, name, token)
         self.source = source
         self.ticker = ticker if ticker is not None else Ticker(source.rate_hz)
@@ -189,7 +192,7 @@ class Player:
     async def run(self, seconds: float | None = None,
                   stop: asyncio.Event | None = None) -> PlayerStats:
         """Stream until the source ends, ``seconds`` pass, ``stop`` is set or cancelled."""
-        session = await open_session(self.url, self.hello)
+        session = await open_session(self.url, self.hello, cafile=self.cafile)
         self.session = session
         self.stats.connection_id = session.connection_id
         self.stats.avatar_id = session.avatar_id

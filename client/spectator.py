@@ -15,6 +15,7 @@ import logging
 import math
 from collections import Counter
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, NamedTuple
 
 from posecast.client.connection import Session, make_hello, open_session, stop_task
@@ -72,8 +73,9 @@ class Spectator:
     """
 
     def __init__(self, url: str, room: str, name: str, max_rate_hz: float | None = None,
-                 token: str | None = None) -> None:
+                 token: str | None = None, cafile: Path | None = None) -> None:
         self.url = url
+        self.cafile = cafile  # a wss:// server's private CA (``open_session``)
         self.hello = make_hello(url, "spectator", room, name, token, max_rate_hz)
         self.roster: dict[int, AvatarInfo] = {}
         self.latest: dict[int, ReceivedFrame] = {}
@@ -87,7 +89,7 @@ class Spectator:
         Raises SessionError if the server cannot be reached, refuses, or goes away;
         ``stats`` keeps what was received up to then.
         """
-        session = await open_session(self.url, self.hello)
+        session = await open_session(self.url, self.hello, cafile=self.cafile)
         self.session = session
         self.stats.connection_id = session.connection_id
         t_start = now()

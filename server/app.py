@@ -16,7 +16,8 @@ import itertools
 import logging
 import signal
 import socket
-from collections.abc import Callable
+import ssl
+from collections.abc import Callable, Sequence
 
 import numba
 from websockets.asyncio.server import Server, ServerConnection, serve
@@ -51,6 +52,7 @@ from posecast.server.metrics import Metrics
 from posecast.server.outbox import Outbox
 from posecast.server.rejection_log import LineBudget, RejectionLog
 from posecast.server.room import Avatar, Delivery, Room, Spectator, send_deliveries
+from posecast.server.tls import allowed_origins
 from posecast.solver.readers.gltf import load_makehuman
 from posecast.solver.rig import Rig, build_rig
 
@@ -504,10 +506,13 @@ async def run_server(host: str, port: int, session: Session | None = None,
                      stop: asyncio.Event | None = None,
                      ready: Callable[[int], None] | None = None,
                      handle_signals: bool = False,
-                     drain_timeout: float = DRAIN_TIMEOUT) -> Session:
+                     drain_timeout: float = DRAIN_TIMEOUT,
+                     tls: ssl.SSLContext | None = None,
+                     origins: Sequence[str] | None = None) -> Session:
     """Serve until ``stop`` is set (or SIGINT/SIGTERM with ``handle_signals``), then
     drain (``Session.drain``) and close every connection cleanly; ``ready(port)`` once
-    listening (port 0 picks a free one)."""
+    listening (port 0 picks a free one). ``tls``: serve wss:// (``server.tls``);
+    ``origins``: the browser origins allowed (requests without an Origin header too)."""
     session = session or Session()
     stop = stop or asyncio.Event()
     loop = asyncio.get_running_loop()
@@ -518,9 +523,10 @@ async def run_server(host: str, port: int, session: Session | None = None,
     async with serve(session.handle, host, port, compression=None,
                      create_connection=TimestampedServerConnection,
                      max_size=session.limits.max_message_bytes,
-                     max_queue=session.limits.max_queue) as server:
+                     max_queue=session.limits.max_queue, ssl=tls,
+                     origins=allowed_origins(origins)) as server:
         bound = next(iter(server.sockets)).getsockname()[1]
-        log.info("posecast server on ws://%s:%d", host, bound)
+        log.info("posecast server on %s://%s:%d", "ws" if tls is None else "wss", host, bound)
         if ready is not None:
             ready(bound)
         poller = (loop.create_task(session.busy.run(stop))

@@ -145,7 +145,7 @@ async def run_headless_viewer(url: str, room: str, frames: int | None,
                               mode: Mode = Mode.INTERPOLATE, view: ViewMode = ViewMode.ORBIT,
                               player: int | None = None, name: str = "viewer",
                               max_rate_hz: float | None = None, token: str | None = None,
-                              timeout: float | None = None,
+                              cafile: Path | None = None, timeout: float | None = None,
                               stop: asyncio.Event | None = None,
                               on_spectator: Callable[[Spectator], None] | None = None,
                               ) -> HeadlessStats:
@@ -159,7 +159,7 @@ async def run_headless_viewer(url: str, room: str, frames: int | None,
     renderer = Renderer.standalone(width, height)
     renderer.warm_up()  # before connecting: no frames queue up while shaders compile
     spectator = ViewerSpectator(url, room, name, Interpolator(mode), max_rate_hz=max_rate_hz,
-                                token=token)
+                                token=token, cafile=cafile)
     if on_spectator is not None:
         on_spectator(spectator)
     done = asyncio.Event()

@@ -14,6 +14,7 @@ from __future__ import annotations
 import enum
 import logging
 from dataclasses import dataclass
+from pathlib import Path
 
 from posecast.client.spectator import ReceivedFrame, Spectator
 from posecast.client.viewer.camera import Camera, OrbitCamera, first_person, mirror
@@ -36,8 +37,10 @@ class ViewerSpectator(Spectator):
     """A Spectator whose every received frame also goes to ``interpolator``."""
 
     def __init__(self, url: str, room: str, name: str, interpolator: Interpolator | None = None,
-                 max_rate_hz: float | None = None, token: str | None = None) -> None:
-        super().__init__(url, room, name, max_rate_hz=max_rate_hz, token=token)
+                 max_rate_hz: float | None = None, token: str | None = None,
+                 cafile: Path | None = None) -> None:
+        super().__init__(url, room, name, max_rate_hz=max_rate_hz, token=token,
+                         cafile=cafile)
         self.interpolator = interpolator or Interpolator()
 
     def on_batch(self, batch: AvatarBatch, t_local: float, clock: ClockEstimator) -> None:

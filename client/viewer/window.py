@@ -205,7 +205,7 @@ async def run_window_viewer(url: str, room: str, width: int = 1280, height: int 
                             fps: float = DEFAULT_FPS, mode: Mode = Mode.INTERPOLATE,
                             view: ViewMode = ViewMode.ORBIT, name: str = "viewer",
                             max_rate_hz: float | None = None, token: str | None = None,
-                            frames: int | None = None,
+                            cafile: Path | None = None, frames: int | None = None,
                             screenshot: str | Path | None = None,
                             stop: asyncio.Event | None = None,
                             on_spectator: Callable[[Spectator], None] | None = None,
@@ -219,7 +219,7 @@ async def run_window_viewer(url: str, room: str, width: int = 1280, height: int 
     """
     window = Window(width, height, f"posecast: {room} at {url}")
     spectator = ViewerSpectator(url, room, name, Interpolator(mode), max_rate_hz=max_rate_hz,
-                                token=token)
+                                token=token, cafile=cafile)
     if on_spectator is not None:
         on_spectator(spectator)
     done = asyncio.Event()
