@@ -474,7 +474,8 @@ def _serve(args: argparse.Namespace) -> int:
     try:
         limits = ServerLimits().with_text(args.limit)
     except ValueError as err:  # limits that do not go together (see _limit)
-        print(f"posecast serve: --limit: {err} (see posecast serve --help)", file=sys.stderr)
+        print(f"posecast serve: {err} (--limit, or [limits] in --config; see posecast serve "
+              "--help)", file=sys.stderr)
         return 2
     try:  # before the solver warms up: a bad certificate is told at once
         tls = _server_tls(args)

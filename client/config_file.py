@@ -37,9 +37,11 @@ def read_config(path: Path) -> tuple[dict[str, Any], str]:
     read or is not TOML (tomllib's message names the line and column)."""
     try:
         text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as err:
-        why = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
-        raise ConfigError(f"cannot read {path}: {why}") from None
+    except OSError as err:
+        raise ConfigError(f"cannot read {path}: {err.strerror or err}") from None
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"cannot read {path}: byte {err.start} is not UTF-8 text, "
+                          "as TOML must be") from None
     try:
         return tomllib.loads(text), text
     except tomllib.TOMLDecodeError as err:
@@ -80,6 +82,9 @@ def config_defaults(parser: argparse.ArgumentParser, table: dict[str, Any],
         if action.dest in given:
             raise ConfigError(f"{where}{key!r} sets what {given[action.dest]!r} sets already")
         given[action.dest] = key
+        if isinstance(value, dict) and isinstance(action, argparse._AppendAction):
+            defaults[action.dest] = list(_table(action, key, value, text))
+            continue
         try:
             defaults[action.dest] = _value(action, key, value)
         except ConfigError as err:
@@ -114,8 +119,7 @@ def _value(action: argparse.Action, key: str, value: Any) -> Any:
     if isinstance(action, argparse._StoreConstAction):  # store_true/false and others
         return action.const if _switch(key, value) else action.default
     if isinstance(action, argparse._AppendAction):
-        items = (_pairs(key, value) if isinstance(value, dict)
-                 else value if isinstance(value, list) else [value])
+        items = value if isinstance(value, list) else [value]
         return [_convert(action, key, item) for item in items]
     if type(action) is argparse._StoreAction:
         if action.nargs in ("*", "+") or isinstance(action.nargs, int):
@@ -132,13 +136,19 @@ def _switch(key: str, value: Any) -> bool:
     return value
 
 
-def _pairs(key: str, table: dict[str, Any]) -> Iterator[str]:
-    """A table of NAME = VALUE as the NAME=VALUE texts the option takes."""
+def _table(action: argparse.Action, key: str, table: dict[str, Any],
+           text: str) -> Iterator[Any]:
+    """A table of NAME = VALUE for an option that takes NAME=VALUE (``[limits]`` for
+    ``--limit``), each converted by the option; an error names the line of its NAME."""
     for name, value in table.items():
+        where = f"{_where(text, key, name)}in [{key}]: "
         if isinstance(value, dict | list | bool):
-            raise ConfigError(f"{key}.{name} takes a number or a text, "
+            raise ConfigError(f"{where}{name} takes a number or a text, "
                               f"got {_shown_value(value)}")
-        yield f"{name}={value}"
+        try:
+            yield _convert(action, key, f"{name}={value}")
+        except ConfigError as err:
+            raise ConfigError(f"{where}{str(err).removeprefix(key).lstrip(': ')}") from None
 
 
 def _convert(action: argparse.Action, key: str, value: Any) -> Any:
@@ -188,14 +198,22 @@ def _shown_value(value: Any) -> str:
     return repr(value)
 
 
-def _where(text: str, key: str) -> str:
+def _where(text: str, key: str, name: str | None = None) -> str:
     """'line N: ' where ``text`` (a TOML file) sets the top-level ``key`` (``key = ...``
-    before any table, or a ``[key]`` table anywhere); '' if not found."""
-    name = rf"""(?:{re.escape(key)}|"{re.escape(key)}"|'{re.escape(key)}')"""
-    assignment, header = re.compile(rf"\s*{name}\s*="), re.compile(rf"\s*\[\s*{name}\s*\]")
-    top_level = True  # a key after a table header belongs to that table
+    before any table, or a ``[key]`` table anywhere), or with ``name``, where the table
+    ``[key]`` sets ``name``; '' if not found."""
+    def pattern(word: str, form: str) -> re.Pattern[str]:
+        quoted = rf"""(?:{re.escape(word)}|"{re.escape(word)}"|'{re.escape(word)}')"""
+        return re.compile(form.replace("WORD", quoted))
+
+    assignment, header = pattern(key, r"\s*WORD\s*="), pattern(key, r"\s*\[\s*WORD\s*\]")
+    inner = pattern(name or "", r"\s*WORD\s*=")
+    top_level, in_table = True, False  # a key after a table header belongs to that table
     for number, line in enumerate(text.splitlines(), 1):
-        if header.match(line) or (top_level and assignment.match(line)):
+        if name is None and (header.match(line) or (top_level and assignment.match(line))):
             return f"line {number}: "
-        top_level = top_level and not line.lstrip().startswith("[")
+        if name is not None and in_table and inner.match(line):
+            return f"line {number}: "
+        if line.lstrip().startswith("["):
+            top_level, in_table = False, bool(header.match(line))
     return ""
