@@ -29,6 +29,8 @@ LOG_LEVELS = ("debug", "info", "warning", "error")
 MAX_OFFSET_M = 100.0  # a shift further than this is a typo (the protocol caps positions)
 MIN_SIZE, MAX_SIZE = 16, 8192  # pixels, each side of a rendered frame
 SOURCE_FORMS = "openvr, vive:FILE or bvh:FILE"
+DURATION_UNITS = {"s": 1.0, "m": 60.0, "h": 3600.0, "d": 86400.0}
+MAX_DURATION_S = 365 * 86400.0  # a join token for over a year is a typo
 
 # argparse prefixes "argument --fps: "; our own messages read on from the option's name
 _OWN_MESSAGE = ("must ", "is ", "names ", "has ")
@@ -205,6 +207,22 @@ def token(text: str) -> str:
         raise argparse.ArgumentTypeError(
             f"must be 1 to {MAX_TOKEN_CHARS} characters, got {len(text)}")
     return text
+
+
+def duration(text: str) -> float:
+    """Seconds from 90s, 15m, 2h, 7d or bare seconds (3600)."""
+    number, unit = (text[:-1], text[-1]) if text[-1:] in DURATION_UNITS else (text, "s")
+    try:
+        value = float(number) * DURATION_UNITS[unit]
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value) or not number.strip():
+        raise argparse.ArgumentTypeError(
+            f"must be a duration such as 90s, 15m, 2h, 7d or seconds (3600), got {text!r}")
+    if not 0.0 < value <= MAX_DURATION_S:
+        raise argparse.ArgumentTypeError(
+            f"must be above 0 and at most 365d, got {text!r}")
+    return value
 
 
 # --------------------------------------------------------------------------- files

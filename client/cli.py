@@ -9,6 +9,7 @@ import contextlib
 import json
 import logging
 import math
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -29,6 +30,7 @@ if TYPE_CHECKING:
     from posecast.client.player import Player
     from posecast.client.spectator import Spectator
     from posecast.client.viewer import ViewerStats
+    from posecast.server.auth import JoinTokens
 
 STOPPED = ("Ctrl-C (SIGINT) or SIGTERM stops it cleanly: it prints its summary and exits "
            "with status 130 (143 for SIGTERM), as a shell reports a signal.")
@@ -43,6 +45,17 @@ def _limit(text: str) -> str:
     except ValueError as err:
         raise argparse.ArgumentTypeError(str(err)) from None
     return text
+
+
+def _secret_file(text: str) -> Path:
+    """A file holding a join-token secret (server.auth): readable, 32 bytes or more."""
+    from posecast.server.auth import SecretError, read_secret_file
+
+    try:
+        read_secret_file(Path(text))
+    except SecretError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+    return Path(text)
 
 
 # client.bench_hostile.ATTACKS, without importing it (and websockets) for every command
@@ -118,6 +131,10 @@ def _parser() -> argparse.ArgumentParser:
                     help="with --busy-poll on some cores only (taskset), a helper thread "
                          "spins on the others and takes part of each batch; this turns "
                          "it off")
+    sv.add_argument("--secret-file", type=_secret_file, default=None, metavar="FILE",
+                    help="admit only join tokens signed with the secret in FILE (posecast "
+                         "token mints them); default: the secret in $POSECAST_SECRET, and "
+                         "without either anyone joins any room")
     defaults = ServerLimits()
     sv.add_argument("--limit", action="append", default=[], type=_limit, metavar="NAME=VALUE",
                     help="override one of the server's limits (repeat for more; "
@@ -151,7 +168,8 @@ def _parser() -> argparse.ArgumentParser:
     pl.add_argument("--name", default="player", type=arg.display_name,
                     help="the name shown above your avatar")
     pl.add_argument("--token", default=None, type=arg.token,
-                    help="a secret of yours: reconnecting with it keeps your avatar")
+                    help="your join token from the host (posecast token), for a server "
+                         "with a secret")
     pl.add_argument("--devices", type=arg.existing_file, default=None,
                     help="TOML file mapping tracker serial numbers to roles (openvr)")
     pl.add_argument("--loop", action="store_true", help="replay a recording forever")
@@ -192,10 +210,29 @@ def _parser() -> argparse.ArgumentParser:
                     help="the camera: around everyone, at a player's eyes, or facing them")
     vw.add_argument("--screenshot", type=arg.out_file, default=None,
                     help="window: save the last frame shown as a PNG")
+    vw.add_argument("--token", default=None, type=arg.token,
+                    help="your join token from the host (posecast token), for a server "
+                         "with a secret")
     vw.add_argument("--max-rate", type=arg.rate_hz, default=None,
                     help="ask the server for at most this many batches per second")
     vw.add_argument("--json", action="store_true",
                     help="print the summary as one JSON document")
+
+    tk = sub.add_parser("token", help="print a join token for a server with a secret",
+                        description="Print a join token (a JWT signed with the server's "
+                        "secret) for one room and role; only the token goes to stdout, so "
+                        "that TOKEN=$(posecast token ...) works.")
+    tk.add_argument("--secret-file", type=_secret_file, default=None, metavar="FILE",
+                    help="the server's secret (as serve --secret-file); default: "
+                         "$POSECAST_SECRET")
+    tk.add_argument("--room", required=True, type=arg.room,
+                    help="the room it admits to; " + ROOM_NAME_RULE)
+    tk.add_argument("--role", required=True, choices=("player", "spectator"),
+                    help="what it admits as")
+    tk.add_argument("--ttl", type=arg.duration, default="2h",
+                    help="how long it stays valid: 90s, 15m, 2h, 7d or seconds")
+    tk.add_argument("--name", type=arg.display_name, default=None,
+                    help="admit only this display name (default: any)")
 
     dm = sub.add_parser("demo", help="a whole session on this machine, with latency table")
     dm.add_argument("--render", type=arg.out_dir, default=None,
@@ -339,6 +376,8 @@ def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
 
         return run_eval(args.files, args.solver, args.max_iterations, args.calibration,
                         args.smoothing, args.json)
+    if args.command == "token":
+        return _token(args)
     if args.command == "serve":
         return _serve(args)
     if args.command == "play":
@@ -440,13 +479,13 @@ async def _view_live(args: argparse.Namespace, watched: list[Spectator]
     mode, view = Mode(args.mode), ViewMode(args.view)
     run = (run_headless_viewer(args.server, args.room, args.frames or 100, args.out, width,
                                height, interval_ms=1000.0 / args.fps, mode=mode, view=view,
-                               max_rate_hz=args.max_rate,
+                               max_rate_hz=args.max_rate, token=args.token,
                                cafile=args.cafile, stop=stop,
                                on_spectator=on_spectator)
            if args.headless else
            run_window_viewer(args.server, args.room, width, height, fps=args.fps, mode=mode,
                              view=view, max_rate_hz=args.max_rate, frames=args.frames,
-                             screenshot=args.screenshot,
+                             screenshot=args.screenshot, token=args.token,
                              cafile=args.cafile, stop=stop,
                              on_spectator=on_spectator))
     try:
@@ -468,8 +507,46 @@ def _session_words(err: SessionError) -> str:
     return str(err) if err.reached else f"cannot reach {err.url}: {err.reason}"
 
 
+def _join_tokens(secret_file: Path | None) -> JoinTokens | None:
+    """Tokens with the secret of --secret-file, else of $POSECAST_SECRET, else None;
+    SecretError (one line) if that secret is unreadable or too short."""
+    from posecast.server.auth import JoinTokens, load_secret
+
+    secret = load_secret(secret_file, os.environ)
+    return JoinTokens(secret) if secret is not None else None
+
+
+def _token(args: argparse.Namespace) -> int:
+    from posecast.server.auth import SECRET_ENV, SecretError
+
+    try:
+        tokens = _join_tokens(args.secret_file)
+    except SecretError as err:
+        return _usage("token", str(err))
+    if tokens is None:
+        return _usage("token", f"needs the server's secret: --secret-file FILE, or "
+                      f"${SECRET_ENV}")
+    try:
+        print(tokens.mint(args.room, args.role, args.ttl, args.name))
+    except ValueError as err:
+        return _usage("token", str(err))
+    return 0
+
+
+def _usage(command: str, message: str) -> int:
+    """A bad command line found after parsing: one line, as argparse's, status 2."""
+    print(f"posecast {command}: {message} (see posecast {command} --help)", file=sys.stderr)
+    return 2
+
+
 def _serve(args: argparse.Namespace) -> int:
     from posecast.server.app import Session, install_fast_loop, run_server
+    from posecast.server.auth import SecretError
+
+    try:
+        tokens = _join_tokens(args.secret_file)
+    except SecretError as err:  # $POSECAST_SECRET too short (a file is checked on parsing)
+        return _usage("serve", str(err))
 
     try:
         limits = ServerLimits().with_text(args.limit)
@@ -483,7 +560,7 @@ def _serve(args: argparse.Namespace) -> int:
         print(f"posecast serve: {err} (see posecast serve --help)", file=sys.stderr)
         return 2
     install_fast_loop()
-    session = Session(solver=args.solver, busy=args.busy_poll,
+    session = Session(tokens=tokens, solver=args.solver, busy=args.busy_poll,
                       helper=None if args.helper else False,
                       limits=limits)
     try:

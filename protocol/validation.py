@@ -30,12 +30,12 @@ A = TypeVar("A", bound=NDArray[Any])
 # so 1 MiB holds a room of a few hundred avatars.
 MAX_MESSAGE_BYTES = 1 << 20
 # What a server accepts from a client (hello, tracker frame, calibrate, ping, leave):
-# a 10-device tracker frame is ~700 bytes, a hello with the longest token ~700 bytes.
+# a 10-device tracker frame is ~700 bytes, a hello with the longest token ~1200 bytes.
 MAX_CLIENT_MESSAGE_BYTES = 4096
 MAX_JOINTS = 256  # the MakeHuman rig has 53, large BVH skeletons ~100
 MAX_AVATARS = 1024  # per roster or batch message
 MAX_NAME_CHARS = 64  # room, display and joint names
-MAX_TOKEN_CHARS = 512
+MAX_TOKEN_CHARS = 1024  # a signed join token (JWT, server.auth) is ~250-800 characters
 MAX_TEXT_CHARS = 1024  # error messages, leave reasons
 MAX_POSITION_M = 1000.0  # tracked spaces are metres across; 1e300 would overflow the solver
 MAX_RATE_HZ = 1000.0

@@ -42,6 +42,7 @@ from posecast.protocol import (
 from posecast.protocol.arrivals import ArrivalStamps, arrival_time
 from posecast.protocol.codec import decode_tracker_poses
 from posecast.protocol.validation import safe_text
+from posecast.server.auth import JoinTokens, TokenError, is_loopback
 from posecast.server.avatars import AvatarSolver
 from posecast.server.busy import BusyPoll
 from posecast.server.clock import now
@@ -72,8 +73,11 @@ class Session:
 
     def __init__(self, rig: Rig | None = None, solver: str = "analytic",
                  reconnect_grace: float = RECONNECT_GRACE, busy: bool = False,
-                 helper: bool | None = None, limits: ServerLimits | None = None) -> None:
+                 helper: bool | None = None, limits: ServerLimits | None = None,
+                 tokens: JoinTokens | None = None) -> None:
         """``limits``: every cap and rate of the server (``server.limits``).
+        ``tokens``: admit only Hellos with a join token signed with its secret
+        (``server.auth``); None: anyone joins any room.
         ``busy``: poll without sleeping and keep the frame path warm between bursts
         (``server.busy``); it takes a whole core. ``helper``: solve each batch with a
         helper thread on the cores this process is not pinned to (``server.helper``);
@@ -83,6 +87,7 @@ class Session:
         self.reconnect_grace = reconnect_grace
         self.rooms: dict[str, Room] = {}
         self.limits = limits or ServerLimits()
+        self.tokens = tokens
         self._open_from: dict[str, int] = {}  # remote address -> its open connections
         self._errors: dict[ServerConnection, Budget] = {}  # each connection's error budget
         self._pings: dict[ServerConnection, Budget] = {}  # and its ping budget
@@ -202,6 +207,11 @@ class Session:
             if not isinstance(msg, Hello):
                 raise ProtocolError(ErrorCode.NOT_ALLOWED,
                                     f"the first message must be hello, got {msg.type}")
+            if self.tokens is not None:  # with a secret: its tokens only, for this room
+                try:
+                    self.tokens.verify(msg.token, msg.room, msg.role, msg.display_name)
+                except TokenError as refused:
+                    raise ProtocolError(ErrorCode.AUTH_FAILED, str(refused)) from None
         except ProtocolError as err:
             self.metrics.rejected[err.code] += 1
             if self.log_budget.take(now()):  # one line per connection: capped too
@@ -514,6 +524,7 @@ async def run_server(host: str, port: int, session: Session | None = None,
     listening (port 0 picks a free one). ``tls``: serve wss:// (``server.tls``);
     ``origins``: the browser origins allowed (requests without an Origin header too)."""
     session = session or Session()
+    _say_access(session, host)
     stop = stop or asyncio.Event()
     loop = asyncio.get_running_loop()
     if handle_signals:
@@ -548,6 +559,17 @@ async def run_server(host: str, port: int, session: Session | None = None,
         room.discard_pending()
     session.avatars.close()
     return session
+
+
+def _say_access(session: Session, host: str) -> None:
+    """Who may join, said once at start: an open server beyond loopback is a warning."""
+    if session.tokens is not None:
+        log.info("join tokens required: only tokens signed with this server's secret join")
+        return
+    log.info("open: anyone can join any room; --secret-file to require tokens")
+    if not is_loopback(host):
+        log.warning("listening on %s without a secret: anyone who reaches this port can "
+                    "join any room (posecast serve --secret-file F)", host or "every address")
 
 
 def _cap_send_buffers(ws: ServerConnection, limits: ServerLimits) -> None:

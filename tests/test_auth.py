@@ -1,0 +1,401 @@
+"""Rooms with a secret: join tokens (server.auth) minted by `posecast token`, checked by
+the server at hello over real sockets on 127.0.0.1, and each refusal one clear line,
+in the protocol's Error and on the command line."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Awaitable, Callable, Iterator
+from pathlib import Path
+
+import jwt
+import pytest
+from conftest import serving
+from websockets.asyncio.client import connect
+
+from posecast.client.arguments import duration
+from posecast.client.builtin import builtin_motion_path
+from posecast.client.cli import main
+from posecast.client.connection import SessionError, make_hello, open_session
+from posecast.client.player import Player
+from posecast.client.sources import open_source
+from posecast.client.spectator import Spectator
+from posecast.protocol import Error, ErrorCode, decode, encode
+from posecast.server.app import Session, run_server
+from posecast.server.auth import (
+    MIN_SECRET_BYTES,
+    SECRET_ENV,
+    JoinTokens,
+    SecretError,
+    TokenError,
+    is_loopback,
+    load_secret,
+    read_secret_file,
+)
+
+SECRET = b"s3cret-of-this-test-server-0123456789abcdef"  # 42 bytes
+OTHER_SECRET = b"another-server-s-secret-0123456789abcdefgh"
+CLIP = f"bvh:{builtin_motion_path()}"
+WAIT = 120.0  # seconds for a subprocess to get somewhere (imports, kernels from cache)
+T0 = 1_800_000_000.0  # a fixed "now" for the pure tests
+
+
+@pytest.fixture(scope="module")
+def session() -> Session:
+    return Session(reconnect_grace=0.0, tokens=JoinTokens(SECRET))
+
+
+# --------------------------------------------------------------------------- pure
+def test_a_minted_token_grants_its_room_role_and_expiry() -> None:
+    tokens = JoinTokens(SECRET)
+    token = tokens.mint("lobby", "player", 7200, now=T0)
+    grant = tokens.verify(token, "lobby", "player", "ana", now=T0 + 7199)
+    assert (grant.room, grant.role, grant.expires, grant.name) == (
+        "lobby", "player", T0 + 7200, None)
+    # a JWT any library reads: HS256 with the claims the docs name
+    assert jwt.get_unverified_header(token)["alg"] == "HS256"
+    claims = jwt.decode(token, SECRET, algorithms=["HS256"], options={"verify_exp": False,
+                                                                   "verify_iat": False})
+    assert claims == {"room": "lobby", "role": "player", "iat": T0, "exp": T0 + 7200}
+
+
+def refusal(token: str | None, room: str = "lobby", role: str = "player",
+            name: str = "ana", now: float = T0) -> str:
+    with pytest.raises(TokenError) as refused:
+        JoinTokens(SECRET).verify(token, room, role, name, now=now)
+    reason = str(refused.value)
+    assert "\n" not in reason
+    return reason
+
+
+def test_each_refusal_names_its_reason() -> None:
+    tokens, other = JoinTokens(SECRET), JoinTokens(OTHER_SECRET)
+    assert "not signed with this server's secret" in refusal(
+        other.mint("lobby", "player", 60, now=T0))
+    expired = refusal(tokens.mint("lobby", "player", 3600, now=T0 - 7200))
+    assert "expired at 2027-01-15 07:00:00 UTC (60 min ago)" in expired, expired
+    assert "is for room 'attic', not 'lobby'" in refusal(tokens.mint("attic", "player", 60,
+                                                                     now=T0))
+    assert "is for a spectator, not a player" in refusal(tokens.mint("lobby", "spectator", 60,
+                                                                     now=T0))
+    assert "needs a join token" in refusal(None)
+    for garbage in ("1", "garbage", "a.b.c", "x" * 1000):
+        assert "malformed" in refusal(garbage)
+    unsigned = jwt.encode({"room": "lobby", "role": "player", "exp": T0 + 60, "iat": T0},
+                          None, algorithm="none")
+    assert "not signed with HS256" in refusal(unsigned)
+    assert "for the name 'bo', not 'ana'" in refusal(tokens.mint("lobby", "player", 60,
+                                                                 name="bo", now=T0))
+
+
+def test_claims_a_web_site_got_wrong_are_named() -> None:
+    def signed(**claims: object) -> str:
+        return jwt.encode({"room": "lobby", "role": "player", "exp": T0 + 60, "iat": T0,
+                           **claims}, SECRET, algorithm="HS256")
+
+    no_exp = jwt.encode({"room": "lobby", "role": "player", "iat": T0}, SECRET,
+                        algorithm="HS256")
+    assert "no 'exp' claim" in refusal(no_exp)
+    assert "'role' claim must be player or spectator" in refusal(signed(role="admin"))
+    assert "'exp' claim is not a unix time" in refusal(signed(exp="tomorrow"))
+    assert "'room' claim is not text" in refusal(signed(room=["lobby"]))
+    assert "ahead of this server's clock" in refusal(signed(iat=T0 + 600, exp=T0 + 900))
+
+
+def test_clock_skew_within_the_leeway_is_forgiven() -> None:
+    tokens = JoinTokens(SECRET, leeway_s=5.0)
+    token = tokens.mint("lobby", "player", 60, now=T0)
+    tokens.verify(token, "lobby", "player", now=T0 + 64)  # 4 s past its expiry
+    tokens.verify(token, "lobby", "player", now=T0 - 4)  # issued 4 s "in the future"
+    with pytest.raises(TokenError, match="expired"):
+        tokens.verify(token, "lobby", "player", now=T0 + 66)
+
+
+def test_the_secret_comes_from_a_file_or_the_environment(tmp_path: Path) -> None:
+    path = tmp_path / "secret"
+    path.write_bytes(SECRET + b"\n")  # as `echo` writes it
+    assert read_secret_file(path) == SECRET
+    assert load_secret(path, {SECRET_ENV: OTHER_SECRET.decode()}) == SECRET  # the file wins
+    assert load_secret(None, {SECRET_ENV: OTHER_SECRET.decode()}) == OTHER_SECRET
+    assert load_secret(None, {}) is None  # open
+    short = tmp_path / "short"
+    short.write_bytes(b"x" * (MIN_SECRET_BYTES - 1) + b"\n")
+    empty = tmp_path / "empty"
+    empty.write_bytes(b"\n")
+    for where, why in [(short, "31 bytes; use 32 or more"), (empty, "is empty"),
+                       (tmp_path / "missing", "no such secret file"),
+                       (tmp_path, "is a folder")]:
+        with pytest.raises(SecretError, match=why):
+            read_secret_file(where)
+    with pytest.raises(SecretError, match=f"{SECRET_ENV} is 5 bytes"):
+        load_secret(None, {SECRET_ENV: "hello"})
+
+
+def test_durations() -> None:
+    assert [duration(t) for t in ("90s", "15m", "2h", "7d", "3600", "1.5h")] == [
+        90.0, 900.0, 7200.0, 604800.0, 3600.0, 5400.0]
+    for bad in ("", "h", "2x", "-1h", "0", "nan", "inf", "400d"):
+        with pytest.raises(Exception, match="must be"):
+            duration(bad)
+
+
+def test_loopback_hosts() -> None:
+    assert all(map(is_loopback, ["127.0.0.1", "127.0.0.2", "::1", "localhost"]))
+    assert not any(map(is_loopback, ["0.0.0.0", "::", "", "192.168.1.4", "example.org"]))
+
+
+# --------------------------------------------------------------------------- sockets
+def run(session: Session, test: Callable[[str], Awaitable[None]]) -> None:
+    async def main() -> None:
+        async with serving(session) as url:
+            await asyncio.wait_for(test(url), 60)
+    asyncio.run(main())
+
+
+def test_valid_tokens_join_and_the_spectator_sees_the_player(session: Session) -> None:
+    tokens = JoinTokens(SECRET)
+
+    async def test(url: str) -> None:
+        spectator = Spectator(url, "lobby", "watcher",
+                              token=tokens.mint("lobby", "spectator", 60))
+        player = Player(url, "lobby", "ana", open_source(CLIP, loop=True),
+                        token=tokens.mint("lobby", "player", 60, name="ana"))
+        stop = asyncio.Event()
+        watching = asyncio.create_task(spectator.run(stop=stop))
+        playing = asyncio.create_task(player.run(stop=stop))
+        try:
+            while (player.stats.avatar_id is None or spectator.stats.frames_per_avatar[
+                    player.stats.avatar_id] < 20):
+                assert not watching.done() and not playing.done()
+                await asyncio.sleep(0.05)
+        finally:
+            stop.set()
+            await asyncio.gather(watching, playing)
+        assert spectator.stats.frames_per_avatar[player.stats.avatar_id] >= 20
+
+    rejected = session.metrics.rejected[ErrorCode.AUTH_FAILED]
+    run(session, test)
+    assert session.metrics.rejected[ErrorCode.AUTH_FAILED] == rejected
+
+
+def _bad_tokens() -> list[tuple[str, str | None, str, str]]:
+    """(case, token, role, the reason's words), for a join to room 'lobby'."""
+    tokens, other = JoinTokens(SECRET), JoinTokens(OTHER_SECRET)
+    return [
+        ("wrong secret", other.mint("lobby", "player", 60), "player",
+         "not signed with this server's secret"),
+        ("expired", tokens.mint("lobby", "player", 60, now=time.time() - 3600), "player",
+         "the join token expired at"),
+        ("wrong room", tokens.mint("attic", "spectator", 60), "spectator",
+         "is for room 'attic', not 'lobby'"),
+        ("wrong role", tokens.mint("lobby", "spectator", 60), "player",
+         "is for a spectator, not a player"),
+        ("missing", None, "spectator", "needs a join token"),
+        ("client-chosen", "1", "player", "malformed"),
+        ("garbage", "\x00not a jwt at all\x7f", "player", "malformed"),
+    ]
+
+
+def test_every_bad_token_is_refused_with_its_reason(session: Session) -> None:
+    cases = _bad_tokens()
+
+    async def test(url: str) -> None:
+        for case, token, role, words in cases:
+            hello = make_hello(url, role, "lobby", "mallory", token)  # type: ignore[arg-type]
+            with pytest.raises(SessionError) as refused:
+                await open_session(url, hello)
+            assert refused.value.code == ErrorCode.AUTH_FAILED, case
+            assert words in str(refused.value), (case, str(refused.value))
+            assert "\n" not in str(refused.value)
+        # and then the server closes with 1008, the reason the code
+        async with connect(url) as ws:
+            await ws.send(encode(make_hello(url, "player", "lobby", "mallory", "1")))
+            error = decode(await asyncio.wait_for(ws.recv(), 10))
+            assert isinstance(error, Error) and error.code == ErrorCode.AUTH_FAILED
+            await asyncio.wait_for(ws.wait_closed(), 10)
+            assert (ws.close_code, ws.close_reason) == (1008, "auth_failed")
+        assert not session.rooms  # no refused join made a room
+
+    rejected = session.metrics.rejected[ErrorCode.AUTH_FAILED]
+    run(session, test)
+    assert session.metrics.rejected[ErrorCode.AUTH_FAILED] == rejected + len(cases) + 1
+
+
+def test_a_guessed_token_never_reaches_a_players_avatar(session: Session) -> None:
+    """A player is in; a second client with a client-chosen token, a token of another
+    server, or a spectator's token cannot join as a player: the first keeps its
+    connection and its avatar, and the room has one avatar."""
+    tokens = JoinTokens(SECRET)
+    guesses = ["1", "ana", tokens.mint("lobby", "spectator", 60),
+               JoinTokens(OTHER_SECRET).mint("lobby", "player", 60, name="ana")]
+
+    async def test(url: str) -> None:
+        owner = await open_session(url, make_hello(
+            url, "player", "lobby", "ana", tokens.mint("lobby", "player", 60)))
+        async with owner:
+            for guess in guesses:
+                with pytest.raises(SessionError, match="auth_failed"):
+                    await open_session(url, make_hello(url, "player", "lobby", "ana", guess))
+            room = session.rooms["lobby"]
+            assert [a.avatar_id for a in room.avatars.values()] == [owner.avatar_id]
+            assert all(a.connected for a in room.avatars.values())
+            assert owner.ws.close_code is None  # not kicked
+
+    run(session, test)
+
+
+def test_an_open_server_says_so_and_warns_beyond_loopback(
+        session: Session, caplog: pytest.LogCaptureFixture) -> None:
+    async def start_and_stop(host: str, open_session: Session) -> None:
+        stop = asyncio.Event()
+        server = asyncio.create_task(run_server(host, 0, open_session, stop,
+                                                lambda _port: stop.set()))
+        await asyncio.wait_for(server, 30)
+
+    open_server = Session(session.rig, reconnect_grace=0.0)
+    with caplog.at_level(logging.INFO, logger="posecast.server"):
+        asyncio.run(start_and_stop("127.0.0.1", open_server))
+    lines = [r.getMessage() for r in caplog.records]
+    assert "open: anyone can join any room; --secret-file to require tokens" in lines
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="posecast.server"):
+        asyncio.run(start_and_stop("0.0.0.0", open_server))
+    (warning,) = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert "listening on 0.0.0.0 without a secret" in warning
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="posecast.server"):
+        asyncio.run(start_and_stop("127.0.0.1", session))
+    assert not any("open:" in r.getMessage() for r in caplog.records)
+    assert any("join tokens required" in r.getMessage() for r in caplog.records)
+
+
+# --------------------------------------------------------------------------- the CLI
+def posecast(*args: str, env: dict[str, str] | None = None, cwd: Path | None = None,
+             ) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "posecast.client.cli", *args],
+                          capture_output=True, text=True, timeout=WAIT, cwd=cwd,
+                          env={**os.environ, **(env or {})})
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture
+def secret_file(tmp_path: Path) -> Path:
+    path = tmp_path / "secret"
+    path.write_bytes(SECRET + b"\n")
+    return path
+
+
+@pytest.fixture
+def served(secret_file: Path, tmp_path: Path) -> Iterator[str]:
+    """`posecast serve --secret-file` in a subprocess; yields its URL."""
+    port = _free_port()
+    log = (tmp_path / "serve.log").open("w")
+    proc = subprocess.Popen([sys.executable, "-m", "posecast.client.cli", "serve",
+                             "--port", str(port), "--secret-file", str(secret_file)],
+                            stdout=subprocess.DEVNULL, stderr=log, text=True,
+                            env={k: v for k, v in os.environ.items() if k != SECRET_ENV})
+    try:
+        deadline = time.monotonic() + WAIT
+        while time.monotonic() < deadline:  # until it listens
+            assert proc.poll() is None, (tmp_path / "serve.log").read_text()
+            with socket.socket() as s:
+                if s.connect_ex(("127.0.0.1", port)) == 0:
+                    break
+            time.sleep(0.1)
+        else:
+            pytest.fail("posecast serve did not start listening")
+        yield f"ws://127.0.0.1:{port}"
+    finally:
+        proc.terminate()
+        proc.wait(30)
+        log.close()
+    assert "join tokens required" in (tmp_path / "serve.log").read_text()
+
+
+def test_posecast_token_prints_only_a_token_the_server_accepts(secret_file: Path) -> None:
+    proc = posecast("token", "--secret-file", str(secret_file), "--room", "lobby",
+                    "--role", "spectator", "--ttl", "15m")
+    assert proc.returncode == 0 and proc.stderr == "", proc.stderr
+    token = proc.stdout.removesuffix("\n")
+    assert proc.stdout.count("\n") == 1 and token.count(".") == 2
+    grant = JoinTokens(SECRET).verify(token, "lobby", "spectator")
+    assert 900 - 60 <= grant.expires - time.time() <= 900
+    # the secret from the environment mints the same kind of token
+    proc = posecast("token", "--room", "lobby", "--role", "player",
+                    env={SECRET_ENV: SECRET.decode()})
+    assert proc.returncode == 0, proc.stderr
+    assert JoinTokens(SECRET).verify(proc.stdout.strip(), "lobby", "player").role == "player"
+
+
+def test_play_with_a_bad_token_is_one_line_and_a_good_one_plays(
+        served: str, secret_file: Path, tmp_path: Path) -> None:
+    bad = JoinTokens(OTHER_SECRET).mint("lobby", "player", 60)
+    proc = posecast("play", "--server", served, "--room", "lobby", "--source", CLIP,
+                    "--token", bad, "--seconds", "5", cwd=tmp_path)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr + proc.stdout
+    lines = [line for line in proc.stderr.splitlines()
+             if line.strip() and not line.startswith(("posecast: compil", " "))]
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith(f"posecast play: {served}: the server refused to join: "
+                               "auth_failed: the join token is not signed with this "
+                               "server's secret"), lines[0]
+    good = posecast("token", "--secret-file", str(secret_file), "--room", "lobby",
+                    "--role", "player").stdout.strip()
+    proc = posecast("play", "--server", served, "--room", "lobby", "--source", CLIP,
+                    "--token", good, "--seconds", "1", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "joined room 'lobby'" in proc.stderr and proc.stdout.startswith("sent ")
+
+
+@pytest.mark.parametrize(("args", "words"), [
+    (["--secret-file", "{missing}"], "--secret-file: no such secret file"),
+    (["--secret-file", "{short}"], "--secret-file: the secret in"),
+    (["--secret-file", "{secret}", "--ttl", "2 hours"], "--ttl must be a duration"),
+    (["--secret-file", "{secret}", "--ttl", "0"], "--ttl must be above 0"),
+    (["--secret-file", "{secret}", "--role", "admin"], "--role: invalid choice: 'admin'"),
+    ([], "needs the server's secret: --secret-file FILE, or $POSECAST_SECRET"),
+])
+def test_bad_token_invocations_are_one_line_and_exit_2(
+        args: list[str], words: str, secret_file: Path, tmp_path: Path,
+        capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv(SECRET_ENV, raising=False)
+    short = tmp_path / "short"
+    short.write_text("too short\n")
+    files = {"{missing}": str(tmp_path / "nope"), "{short}": str(short),
+             "{secret}": str(secret_file)}
+    argv = ["token", "--room", "lobby", "--role", "player"]
+    argv += [files.get(a, a) for a in args]
+    if "--role" in args:
+        argv[3:5] = []
+    try:
+        code = main(argv)
+    except SystemExit as exit_info:
+        code = exit_info.code  # type: ignore[assignment]
+    assert code == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    (line,) = captured.err.splitlines()
+    assert line.startswith("posecast token: ") and words in line, line
+
+
+def test_the_real_token_command_has_no_traceback_for_a_short_secret(tmp_path: Path) -> None:
+    (tmp_path / "short").write_text("1234\n")
+    proc = posecast("token", "--secret-file", str(tmp_path / "short"), "--room", "lobby",
+                    "--role", "player")
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert proc.stderr.count("\n") == 1 and "is 4 bytes; use 32 or more" in proc.stderr
+    proc = posecast("serve", "--port", "0", env={SECRET_ENV: "1234"})
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1, proc.stderr
+    assert f"{SECRET_ENV} is 4 bytes" in proc.stderr
