@@ -16,6 +16,7 @@ import contextlib
 import errno
 import logging
 import socket
+import struct
 from pathlib import Path
 from types import TracebackType
 from typing import Literal
@@ -63,6 +64,9 @@ log = logging.getLogger(__name__)
 # first room may stall while its solver compiles)
 OPEN_TIMEOUT = 10.0
 CLOSE_TIMEOUT = 1.0  # a peer that does not answer our close is not worth a longer wait
+# how long a viewer may spend taking a backlog before it draws (``Session.catch_up``):
+# a 90 Hz room's backlog of a 75 ms draw is taken in well under a millisecond
+CATCH_UP_S = 0.010
 
 # clock sync: a burst of pings at start so the first frames carry a good offset, then a
 # slow refresh so the estimate follows drift (ClockEstimator keeps 10 s of samples).
@@ -224,6 +228,7 @@ class Session:
         self._synced = asyncio.Event()
         self._pinger: asyncio.Task[None] | None = None
         self._leaving = False
+        self._decoding = False  # a message read, its decoding one loop pass away
 
     @property
     def connection_id(self) -> int:
@@ -253,6 +258,25 @@ class Session:
         broadcast([self.ws], data)  # websockets' synchronous write (no await, no lock)
         return True
 
+    def caught_up(self) -> bool:
+        """Whether the reading task has taken every message that reached this machine:
+        none in hand, none in websockets' queue, no byte in the kernel's receive buffer."""
+        return (not self._decoding and not getattr(self.ws, "arrivals", None)
+                and unread_bytes(self.ws) == 0)
+
+    async def catch_up(self, max_s: float = CATCH_UP_S) -> None:
+        """Give the event loop to the reading task until it has taken everything that
+        arrived (``caught_up``), for at most ``max_s``. A viewer calls it before each
+        draw: a draw holds the loop while frames keep coming, and drawing without taking
+        them first would show a backlog that grows by every draw (seconds behind at
+        13 fps; one draw behind with it, docs/performance.md "Slow viewers")."""
+        deadline = now() + max_s
+        # two passes at least: the first reads the socket, the second runs the reader
+        for _ in range(2):
+            await asyncio.sleep(0)
+        while not self.caught_up() and now() < deadline:
+            await asyncio.sleep(0)
+
     async def receive(self) -> tuple[Message, float]:
         """The next message other than a Pong, and ``now()`` right when it arrived.
 
@@ -268,11 +292,15 @@ class Session:
                        else _closed_reason(exc, self.last_error))
                 raise SessionError(self.url, why) from None
             t = arrival_time(self.ws, now)  # when the bytes reached this process
-            # decode on the loop's next pass: when many connections share a process (the
-            # demo's spectators), the reads that came in meanwhile are taken (and
-            # stamped) first, so one connection's decoding does not count as the next
-            # one's network time; alone, it costs a pass of the loop
-            await asyncio.sleep(0)
+            if not getattr(self.ws, "arrivals", None):
+                # decode on the loop's next pass: when many connections share a process
+                # (the demo's spectators), the reads that came in meanwhile are taken
+                # (and stamped) first, so one connection's decoding does not count as
+                # the next one's network time. Not while more of ours wait: a backlog
+                # (a viewer's long draw) is taken in one go, not one message per pass
+                self._decoding = True
+                await asyncio.sleep(0)
+                self._decoding = False
             self.bytes_received += len(data)
             msg = decode(data)
             if isinstance(msg, Pong):
@@ -335,3 +363,19 @@ class Session:
     async def __aexit__(self, exc_type: type[BaseException] | None,
                         exc: BaseException | None, tb: TracebackType | None) -> None:
         await self.close()
+
+
+def unread_bytes(ws: ClientConnection) -> int:
+    """Bytes that reached the kernel's receive buffer of ``ws`` and were not read yet (0
+    where the platform cannot tell)."""
+    transport = ws.transport
+    sock = transport.get_extra_info("socket") if transport is not None else None
+    if sock is None:
+        return 0
+    try:
+        import fcntl  # POSIX only: elsewhere a viewer catches up with what was read
+        import termios
+        return struct.unpack("i", fcntl.ioctl(sock.fileno(), termios.FIONREAD,
+                                               b"\0\0\0\0"))[0]
+    except (ImportError, OSError, ValueError):  # not POSIX, closed, or not a socket
+        return 0

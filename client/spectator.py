@@ -106,6 +106,13 @@ class Spectator:
             await session.close()
         return self.stats
 
+    async def catch_up(self) -> None:
+        """Take every message that has arrived before drawing (``Session.catch_up``)."""
+        if self.session is not None:
+            await self.session.catch_up()
+        else:  # still connecting: the connecting task needs the loop
+            await asyncio.sleep(0)
+
     async def _read_loop(self, session: Session) -> None:
         while True:
             try:

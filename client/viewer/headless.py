@@ -111,6 +111,7 @@ async def render_spectator(spectator: Spectator, out_dir: str | Path | None, *,
                 break
             if t_end is not None and now() >= t_end:
                 break
+            await scene.spectator.catch_up()  # the newest poses, not a backlog
             drawn = viewer.draw(now())
             pixels = r.read()  # waits for the GPU: the frame is complete
             t_present = now()

@@ -180,6 +180,7 @@ class Window:
                 size = self.framebuffer_size()
                 if size != (renderer.width, renderer.height):
                     renderer.width, renderer.height = size  # the screen resizes itself
+                await scene.spectator.catch_up()  # the newest poses, not a backlog
                 drawn = viewer.draw(now())
                 last = frames is not None and viewer.stats.frames == frames - 1
                 if self._shot is not None or (last and screenshot is not None):
