@@ -174,7 +174,8 @@ class Player:
                  cafile: Path | None = None) -> None:
         self.url = url
         self.cafile = cafile  # a wss:// server's private CA (``open_session``)
-        self.hello = make_hello(url, "player", room, name, token)
+        # its rate: the server allows that plus slack, not the rate of its fastest player
+        self.hello = make_hello(url, "player", room, name, token, max_rate_hz=source.rate_hz)
         self.source = source
         self.ticker = ticker if ticker is not None else Ticker(source.rate_hz)
         if abs(self.ticker.rate_hz - source.rate_hz) > 1e-6 * source.rate_hz:

@@ -91,15 +91,9 @@ class Hello(Model):
     # opaque to the protocol; the server may use it to authenticate, and to give a player
     # who reconnects the avatar they had
     token: Token | None = None
-    # spectators only: deliver at most this many batches per second
+    # a spectator: deliver at most this many batches per second; a player: the rate it
+    # sends tracker frames at (the server then takes that plus slack, not its maximum)
     max_rate_hz: RateHz | None = None
-
-    @model_validator(mode="after")
-    def _rate_for_spectators(self) -> Hello:
-        if self.role == "player" and self.max_rate_hz is not None:
-            raise ValueError(f"max_rate_hz: only a spectator may ask for a rate "
-                             f"(got {self.max_rate_hz!r} from a player)")
-        return self
 
 
 class Welcome(Model):

@@ -48,7 +48,7 @@ from posecast.server.busy import BusyPoll
 from posecast.server.clock import now
 from posecast.server.eviction import Watchdog, close_now
 from posecast.server.helper import spare_cores
-from posecast.server.limits import Budget, ServerLimits
+from posecast.server.limits import Budget, ServerLimits, player_frames_per_s
 from posecast.server.metrics import Metrics
 from posecast.server.outbox import Outbox
 from posecast.server.rejection_log import LineBudget, RejectionLog
@@ -240,7 +240,8 @@ class Session:
         avatar.connection = ws if isinstance(ws, ArrivalStamps) else None
         self._owners[avatar.avatar_id] = ws
         limits = self.limits
-        frames = Budget(limits.frames_per_s, limits.frame_burst)
+        frames_per_s = player_frames_per_s(limits, hello.max_rate_hz)
+        frames = Budget(frames_per_s, limits.frame_burst)
         calibrations = Budget(limits.calibrations_per_s, limits.calibration_burst)
         address = ws.remote_address[0] if isinstance(ws.remote_address, tuple) else "?"
         from_address = self._address_calibrations.setdefault(address, Budget(
@@ -259,7 +260,10 @@ class Session:
                         self.metrics.frames_received += 1
                         try:
                             if not frames.take(t_received):
-                                raise self._limited("frames", limits.frames_per_s)
+                                raise self._limited("frames", frames_per_s, "" if (
+                                    hello.max_rate_hz is None) else (
+                                    f"; {limits.frame_rate_slack:g} x the "
+                                    f"{hello.max_rate_hz:g} Hz of hello.max_rate_hz"))
                             if not room.is_calibrated(avatar.avatar_id):
                                 raise ProtocolError(ErrorCode.NOT_CALIBRATED,
                                                     "send a calibrate message (T-pose) "
@@ -356,10 +360,11 @@ class Session:
         except TimeoutError:
             ws.transport.abort()
 
-    def _limited(self, limit: str, per_s: float) -> ProtocolError:
+    def _limited(self, limit: str, per_s: float, detail: str = "") -> ProtocolError:
         self.metrics.limited[limit] += 1
         return ProtocolError(ErrorCode.RATE_LIMITED,
-                             f"over {per_s:g} {limit} per second (limit {limit}_per_s)")
+                             f"over {per_s:g} {limit} per second (limit {limit}_per_s"
+                             f"{detail})")
 
     def _forget_later(self, room: Room, avatar: Avatar) -> None:
         """Keep a disconnected player's avatar for a while in case it reconnects."""

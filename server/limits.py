@@ -26,6 +26,9 @@ class ServerLimits:
     # tracker frames per second per player: a 144 Hz headset with slack for jitter
     frames_per_s: float = 240.0
     frame_burst: int = 60  # frames in a 0.25 s clump (the bucket refills whole)
+    # a player that declares its rate (hello.max_rate_hz) gets this many times that
+    # (capped by frames_per_s): a 90 Hz player cannot send a 240 Hz one's solves
+    frame_rate_slack: float = 1.5
     # a calibration costs ~1 ms of solve and a roster broadcast to every spectator
     calibrations_per_s: float = 1.0
     calibration_burst: int = 3  # a player retrying a T-pose a few times
@@ -107,6 +110,14 @@ class ServerLimits:
                 raise ValueError(f"limit {name} takes {'an integer' if kind is int else 'a number'}"
                                  f", got {text!r}") from None
         return dataclasses.replace(self, **changes)
+
+
+def player_frames_per_s(limits: ServerLimits, declared_hz: float | None) -> float:
+    """Tracker frames per second a player may send: its declared rate plus slack, never
+    above the server's ``frames_per_s``."""
+    if declared_hz is None:
+        return limits.frames_per_s
+    return min(limits.frames_per_s, declared_hz * limits.frame_rate_slack)
 
 
 class Budget:

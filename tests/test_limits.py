@@ -194,6 +194,31 @@ def test_tracker_frames_over_the_rate_are_refused(session: Session,
     run(test, session, limits)
 
 
+def test_a_player_is_held_to_the_rate_it_declared(session: Session,
+                                                   recording: ViveRecording) -> None:
+    """A player that says it sends 10 Hz gets 15 frames/s (slack 1.5), not the server's
+    240: sending at 240 is refused and the reason names the declared rate."""
+    limits = ServerLimits(frame_burst=10)
+
+    async def test(url: str) -> None:
+        async with connect(url, compression=None) as ws:
+            await ws.send(encode(Hello(protocol_version=PROTOCOL_VERSION, role="player",
+                                       room="declared", display_name="ten",
+                                       max_rate_hz=10.0)))
+            assert isinstance(await receive(ws), Welcome)
+            await ws.send(calibration(recording))
+            for i in range(1, 13):  # 12 at once: over the window's 10
+                await ws.send(tracker(recording, i))
+            err = await receive_type(ws, Error)
+            assert err.code == "rate_limited", err  # type: ignore[attr-defined]
+            assert "over 15 frames per second" in err.message, err  # type: ignore[attr-defined]
+            assert "10 Hz of hello.max_rate_hz" in err.message  # type: ignore[attr-defined]
+        # the window: 10 frames per 10 / 15 s. The two over it were refused, not solved
+        assert session.metrics.limited["frames"] >= 1
+
+    run(test, session, limits)
+
+
 def test_calibrations_add_up_per_address(session: Session,
                                          recording: ViveRecording) -> None:
     """Many connections from one address cannot add up to a calibrate flood."""
