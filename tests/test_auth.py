@@ -1,13 +1,16 @@
 """Rooms with a secret: join tokens (server.auth) minted by `posecast token`, checked by
-the server at hello over real sockets on 127.0.0.1, and each refusal one clear line,
-in the protocol's Error and on the command line."""
+the server at hello over real sockets on 127.0.0.1 (ws:// and wss://, with a certificate
+made here), and each refusal one clear line, in the protocol's Error and on the command
+line."""
 
 from __future__ import annotations
 
 import asyncio
 import logging
 import os
+import shutil
 import socket
+import ssl
 import subprocess
 import sys
 import time
@@ -16,7 +19,6 @@ from pathlib import Path
 
 import jwt
 import pytest
-from conftest import serving
 from websockets.asyncio.client import connect
 
 from posecast.client.arguments import duration
@@ -38,6 +40,7 @@ from posecast.server.auth import (
     load_secret,
     read_secret_file,
 )
+from posecast.server.tls import server_tls_context
 
 SECRET = b"s3cret-of-this-test-server-0123456789abcdef"  # 42 bytes
 OTHER_SECRET = b"another-server-s-secret-0123456789abcdefgh"
@@ -49,6 +52,22 @@ T0 = 1_800_000_000.0  # a fixed "now" for the pure tests
 @pytest.fixture(scope="module")
 def session() -> Session:
     return Session(reconnect_grace=0.0, tokens=JoinTokens(SECRET))
+
+
+@pytest.fixture(scope="module")
+def certificate(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """A self-signed certificate for 127.0.0.1 and its key: the certificate is its own
+    CA, the client's --cafile."""
+    if shutil.which("openssl") is None:
+        pytest.skip("openssl is not installed: it makes the test certificate")
+    folder = tmp_path_factory.mktemp("tls")
+    cert, key = folder / "cert.pem", folder / "key.pem"
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "ec", "-pkeyopt",
+                    "ec_paramgen_curve:prime256v1", "-nodes", "-keyout", str(key), "-out",
+                    str(cert), "-days", "2", "-subj", "/CN=localhost", "-addext",
+                    "subjectAltName=IP:127.0.0.1,DNS:localhost"],
+                   check=True, capture_output=True, timeout=60)
+    return cert, key
 
 
 # --------------------------------------------------------------------------- pure
@@ -151,21 +170,46 @@ def test_loopback_hosts() -> None:
 
 
 # --------------------------------------------------------------------------- sockets
-def run(session: Session, test: Callable[[str], Awaitable[None]]) -> None:
+def run(session: Session, test: Callable[[str], Awaitable[None]],
+        tls: ssl.SSLContext | None = None) -> None:
+    """Serve ``session`` on a free port of 127.0.0.1 (wss:// with ``tls``), run the test
+    against its URL, shut down cleanly."""
     async def main() -> None:
-        async with serving(session) as url:
-            await asyncio.wait_for(test(url), 60)
+        session.rooms.clear()
+        stop = asyncio.Event()
+        ready: asyncio.Future[int] = asyncio.get_running_loop().create_future()
+        server = asyncio.create_task(run_server("127.0.0.1", 0, session, stop,
+                                                ready.set_result, tls=tls))
+        port = await asyncio.wait_for(ready, 30)
+        try:
+            await asyncio.wait_for(test(f"{'ws' if tls is None else 'wss'}://127.0.0.1:"
+                                        f"{port}"), 60)
+        finally:
+            stop.set()
+            await asyncio.wait_for(server, 30)
     asyncio.run(main())
 
 
-def test_valid_tokens_join_and_the_spectator_sees_the_player(session: Session) -> None:
+@pytest.fixture(params=["ws", "wss"])
+def scheme(request: pytest.FixtureRequest, certificate: tuple[Path, Path]
+           ) -> tuple[ssl.SSLContext | None, Path | None]:
+    """The server's TLS context and the client's CA file: (None, None) for ws://."""
+    if request.param == "ws":
+        return None, None
+    cert, key = certificate
+    return server_tls_context(cert, key), cert
+
+
+def test_valid_tokens_join_and_the_spectator_sees_the_player(
+        session: Session, scheme: tuple[ssl.SSLContext | None, Path | None]) -> None:
     tokens = JoinTokens(SECRET)
+    tls, cafile = scheme
 
     async def test(url: str) -> None:
         spectator = Spectator(url, "lobby", "watcher",
-                              token=tokens.mint("lobby", "spectator", 60))
+                              token=tokens.mint("lobby", "spectator", 60), cafile=cafile)
         player = Player(url, "lobby", "ana", open_source(CLIP, loop=True),
-                        token=tokens.mint("lobby", "player", 60, name="ana"))
+                        token=tokens.mint("lobby", "player", 60, name="ana"), cafile=cafile)
         stop = asyncio.Event()
         watching = asyncio.create_task(spectator.run(stop=stop))
         playing = asyncio.create_task(player.run(stop=stop))
@@ -180,7 +224,7 @@ def test_valid_tokens_join_and_the_spectator_sees_the_player(session: Session) -
         assert spectator.stats.frames_per_avatar[player.stats.avatar_id] >= 20
 
     rejected = session.metrics.rejected[ErrorCode.AUTH_FAILED]
-    run(session, test)
+    run(session, test, tls)
     assert session.metrics.rejected[ErrorCode.AUTH_FAILED] == rejected
 
 
@@ -202,29 +246,34 @@ def _bad_tokens() -> list[tuple[str, str | None, str, str]]:
     ]
 
 
-def test_every_bad_token_is_refused_with_its_reason(session: Session) -> None:
+def test_every_bad_token_is_refused_with_its_reason(
+        session: Session, scheme: tuple[ssl.SSLContext | None, Path | None]) -> None:
     cases = _bad_tokens()
+    tls, cafile = scheme
 
     async def test(url: str) -> None:
         for case, token, role, words in cases:
             hello = make_hello(url, role, "lobby", "mallory", token)  # type: ignore[arg-type]
             with pytest.raises(SessionError) as refused:
-                await open_session(url, hello)
+                await open_session(url, hello, cafile=cafile)
             assert refused.value.code == ErrorCode.AUTH_FAILED, case
             assert words in str(refused.value), (case, str(refused.value))
             assert "\n" not in str(refused.value)
-        # and then the server closes with 1008, the reason the code
-        async with connect(url) as ws:
-            await ws.send(encode(make_hello(url, "player", "lobby", "mallory", "1")))
-            error = decode(await asyncio.wait_for(ws.recv(), 10))
-            assert isinstance(error, Error) and error.code == ErrorCode.AUTH_FAILED
-            await asyncio.wait_for(ws.wait_closed(), 10)
-            assert (ws.close_code, ws.close_reason) == (1008, "auth_failed")
+        # and then the server closes with 1008, the reason the code (over wss:// a close
+        # the server starts completes only after websockets' close timeouts, 20 s)
+        if tls is None:
+            async with connect(url) as ws:
+                await ws.send(encode(make_hello(url, "player", "lobby", "mallory", "1")))
+                error = decode(await asyncio.wait_for(ws.recv(), 10))
+                assert isinstance(error, Error) and error.code == ErrorCode.AUTH_FAILED
+                await asyncio.wait_for(ws.wait_closed(), 10)
+                assert (ws.close_code, ws.close_reason) == (1008, "auth_failed")
         assert not session.rooms  # no refused join made a room
 
     rejected = session.metrics.rejected[ErrorCode.AUTH_FAILED]
-    run(session, test)
-    assert session.metrics.rejected[ErrorCode.AUTH_FAILED] == rejected + len(cases) + 1
+    run(session, test, tls)
+    assert session.metrics.rejected[ErrorCode.AUTH_FAILED] == (
+        rejected + len(cases) + (tls is None))
 
 
 def test_a_guessed_token_never_reaches_a_players_avatar(session: Session) -> None:
@@ -298,12 +347,15 @@ def secret_file(tmp_path: Path) -> Path:
 
 
 @pytest.fixture
-def served(secret_file: Path, tmp_path: Path) -> Iterator[str]:
-    """`posecast serve --secret-file` in a subprocess; yields its URL."""
+def served(secret_file: Path, certificate: tuple[Path, Path], tmp_path: Path
+           ) -> Iterator[str]:
+    """`posecast serve --secret-file` over TLS in a subprocess; yields its wss:// URL."""
     port = _free_port()
     log = (tmp_path / "serve.log").open("w")
+    cert, key = certificate
     proc = subprocess.Popen([sys.executable, "-m", "posecast.client.cli", "serve",
-                             "--port", str(port), "--secret-file", str(secret_file)],
+                             "--port", str(port), "--secret-file", str(secret_file),
+                             "--certfile", str(cert), "--keyfile", str(key)],
                             stdout=subprocess.DEVNULL, stderr=log, text=True,
                             env={k: v for k, v in os.environ.items() if k != SECRET_ENV})
     try:
@@ -316,7 +368,7 @@ def served(secret_file: Path, tmp_path: Path) -> Iterator[str]:
             time.sleep(0.1)
         else:
             pytest.fail("posecast serve did not start listening")
-        yield f"ws://127.0.0.1:{port}"
+        yield f"wss://127.0.0.1:{port}"
     finally:
         proc.terminate()
         proc.wait(30)
@@ -339,24 +391,60 @@ def test_posecast_token_prints_only_a_token_the_server_accepts(secret_file: Path
     assert JoinTokens(SECRET).verify(proc.stdout.strip(), "lobby", "player").role == "player"
 
 
-def test_play_with_a_bad_token_is_one_line_and_a_good_one_plays(
-        served: str, secret_file: Path, tmp_path: Path) -> None:
-    bad = JoinTokens(OTHER_SECRET).mint("lobby", "player", 60)
-    proc = posecast("play", "--server", served, "--room", "lobby", "--source", CLIP,
-                    "--token", bad, "--seconds", "5", cwd=tmp_path)
+def _refusal_line(proc: subprocess.CompletedProcess[str]) -> str:
+    """The one line a refused join prints (a cold kernel cache may add a notice)."""
     assert proc.returncode == 1 and "Traceback" not in proc.stderr + proc.stdout
     lines = [line for line in proc.stderr.splitlines()
              if line.strip() and not line.startswith(("posecast: compil", " "))]
     assert len(lines) == 1, proc.stderr
-    assert lines[0].startswith(f"posecast play: {served}: the server refused to join: "
-                               "auth_failed: the join token is not signed with this "
-                               "server's secret"), lines[0]
+    return lines[0]
+
+
+def test_play_over_wss_with_a_bad_token_is_one_line_and_a_good_one_plays(
+        served: str, secret_file: Path, certificate: tuple[Path, Path],
+        tmp_path: Path) -> None:
+    cafile = str(certificate[0])
+    bad = JoinTokens(OTHER_SECRET).mint("lobby", "player", 60)
+    line = _refusal_line(posecast("play", "--server", served, "--room", "lobby", "--source",
+                                  CLIP, "--cafile", cafile, "--token", bad, "--seconds", "5",
+                                  cwd=tmp_path))
+    assert line.startswith(f"posecast play: {served}: the server refused to join: "
+                           "auth_failed: the join token is not signed with this "
+                           "server's secret"), line
     good = posecast("token", "--secret-file", str(secret_file), "--room", "lobby",
                     "--role", "player").stdout.strip()
     proc = posecast("play", "--server", served, "--room", "lobby", "--source", CLIP,
-                    "--token", good, "--seconds", "1", cwd=tmp_path)
+                    "--cafile", cafile, "--token", good, "--seconds", "1", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert "joined room 'lobby'" in proc.stderr and proc.stdout.startswith("sent ")
+
+
+def test_view_over_wss_sees_a_player_with_tokens_and_bad_ones_are_one_line(
+        served: str, egl: None, certificate: tuple[Path, Path], tmp_path: Path) -> None:
+    tokens, cafile = JoinTokens(SECRET), str(certificate[0])
+    view = ["view", "--server", served, "--room", "lobby", "--cafile", cafile, "--headless",
+            "--out", str(tmp_path / "png"), "--size", "160x120", "--fps", "10"]
+    expired = tokens.mint("lobby", "spectator", 60, now=time.time() - 3600)
+    assert "the join token expired at" in _refusal_line(
+        posecast(*view, "--token", expired, cwd=tmp_path))
+    assert "the join token is for room 'attic', not 'lobby'" in _refusal_line(
+        posecast(*view, "--token", tokens.mint("attic", "spectator", 60), cwd=tmp_path))
+    play = subprocess.Popen([sys.executable, "-m", "posecast.client.cli", "play", "--server",
+                             served, "--room", "lobby", "--source", CLIP, "--loop",
+                             "--cafile", cafile, "--token",
+                             tokens.mint("lobby", "player", 600)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            cwd=tmp_path)
+    try:
+        proc = posecast(*view, "--frames", "3", "--token",
+                        tokens.mint("lobby", "spectator", 600), cwd=tmp_path)
+    finally:
+        play.terminate()
+        _, play_err = play.communicate(timeout=WAIT)
+    assert proc.returncode == 0, proc.stderr
+    assert f"wrote 3 frames to {tmp_path / 'png'}" in proc.stdout, proc.stdout
+    assert "1 player in room 'lobby'" in proc.stderr
+    assert "joined room 'lobby'" in play_err
 
 
 @pytest.mark.parametrize(("args", "words"), [
