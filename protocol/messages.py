@@ -88,9 +88,11 @@ class Hello(Model):
     role: Literal["player", "spectator"]
     room: RoomName
     display_name: Name
-    # opaque to the protocol; the server may use it to authenticate, and to give a player
-    # who reconnects the avatar they had
+    # the join token (server.auth) where the server has a secret: opaque here
     token: Token | None = None
+    # a player coming back: the ``resume`` of its last Welcome gives it the avatar (and
+    # calibration) it had, within the server's reconnect grace; anything else, a new one
+    resume: Token | None = None
     # a spectator: deliver at most this many batches per second; a player: the rate it
     # sends tracker frames at (the server then takes that plus slack, not its maximum)
     max_rate_hz: RateHz | None = None
@@ -102,6 +104,12 @@ class Welcome(Model):
     connection_id: Int
     avatar_id: Int | None  # the player's own avatar; None for a spectator
     server_time: Time  # server clock when sent; a first guess before ping/pong
+    # a player's: the secret to send as ``hello.resume`` after a drop (random, issued by
+    # the server: no client-chosen value reaches an avatar), whether this join got the
+    # avatar back (calibrated: no new T-pose), and its name in the room (made unique)
+    resume: Token | None = None
+    resumed: Annotated[bool, Strict()] = False
+    display_name: Name | None = None
 
 
 # --------------------------------------------------------------------------- skeletons

@@ -1,7 +1,8 @@
 """`posecast serve`: the asyncio websockets server of a session.
 
 One connection = one handler task. The first message must be a Hello; a player then owns
-one avatar (kept across reconnects with the same token), a spectator only receives. Every
+one avatar (kept across reconnects with the resume secret of its Welcome), a spectator
+only receives. Every
 message is decoded and validated by protocol/; a bad one is answered with an Error naming
 what was wrong, counted, and the connection carries on. Spectators receive through their
 own latest-wins outbox task, so a slow one never delays the room.
@@ -14,6 +15,7 @@ import contextlib
 import functools
 import itertools
 import logging
+import secrets
 import signal
 import socket
 import ssl
@@ -22,6 +24,7 @@ from collections.abc import Callable, Sequence
 import numba
 from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
+from websockets.frames import CloseCode
 from websockets.protocol import State
 
 from posecast.protocol import (
@@ -60,7 +63,7 @@ from posecast.solver.rig import Rig, build_rig
 log = logging.getLogger("posecast.server")
 
 HELLO_TIMEOUT = 5.0  # seconds a new connection has to say who it is
-RECONNECT_GRACE = 30.0  # seconds a disconnected player's avatar waits for its token
+RECONNECT_GRACE = 30.0  # seconds a dropped player's avatar waits for its resume secret
 # on stop, how long the open bursts and the spectators' outboxes get to empty before the
 # connections close (a spectator that stopped reading would hold the stop forever)
 DRAIN_TIMEOUT = 2.0
@@ -193,7 +196,7 @@ class Session:
     def _players_full(self, hello: Hello) -> bool:
         """A new player would pass the room's cap (a reconnect keeps its place)."""
         room = self.rooms.get(hello.room)
-        if room is None or room.find_by_token(hello.token) is not None:
+        if room is None or room.find_by_resume(hello.resume) is not None:
             return False
         connected = sum(a.connected for a in room.avatars.values())
         return connected >= self.limits.players_per_room
@@ -225,10 +228,13 @@ class Session:
     # ------------------------------------------------------------------ players
     async def _player(self, ws: ServerConnection, conn_id: int, room: Room,
                       hello: Hello) -> None:
-        avatar = room.find_by_token(hello.token)
+        avatar = room.find_by_resume(hello.resume)
+        resumed = avatar is not None
         if avatar is None:
             self._make_room_for_an_avatar(room)
-            avatar = Avatar(next(self._ids), hello.display_name, hello.token)
+            # the resume secret comes from here, never from the client: 192 random bits
+            avatar = Avatar(next(self._ids), room.unique_name(hello.display_name),
+                            secrets.token_urlsafe(24))
             room.avatars[avatar.avatar_id] = avatar
         else:  # a reconnect: same avatar, same calibration; the old connection goes
             old = self._owners.get(avatar.avatar_id)
@@ -250,7 +256,9 @@ class Session:
             ws.fast_path = functools.partial(self._tracker_frame_now, room, avatar, frames)
         await ws.send(encode(Welcome(protocol_version=PROTOCOL_VERSION,
                                      connection_id=conn_id, avatar_id=avatar.avatar_id,
-                                     server_time=now())))
+                                     server_time=now(), resume=avatar.resume,
+                                     resumed=resumed, display_name=avatar.display_name)))
+        said_bye = False
         try:
             async for data in ws:
                 t_received = arrival_time(ws, now)
@@ -289,6 +297,7 @@ class Session:
                         if self.busy is not None:
                             self.busy.warm.calibrate(msg.roles, msg.poses)
                     else:
+                        said_bye = isinstance(msg, Leave)
                         await self._common(ws, msg, t_received, "player")
                 except ProtocolError as err:
                     await self._reject(ws, err)
@@ -307,7 +316,7 @@ class Session:
                 del self._owners[avatar.avatar_id]
                 avatar.connected = False
                 avatar.connection = None
-                self._forget_later(room, avatar)
+                self._forget_later(room, avatar, at_once=said_bye or _closed_by_client(ws))
 
     def _tracker_frame_now(self, room: Room, avatar: Avatar, frames: Budget,
                            data: bytes | bytearray | memoryview,
@@ -366,14 +375,15 @@ class Session:
                              f"over {per_s:g} {limit} per second (limit {limit}_per_s"
                              f"{detail})")
 
-    def _forget_later(self, room: Room, avatar: Avatar) -> None:
-        """Keep a disconnected player's avatar for a while in case it reconnects."""
+    def _forget_later(self, room: Room, avatar: Avatar, at_once: bool = False) -> None:
+        """Keep a dropped player's avatar for a while in case it reconnects; one that
+        said goodbye (Leave) goes ``at_once``."""
         def forget() -> None:
             if not avatar.connected and room.avatars.get(avatar.avatar_id) is avatar:
                 room.remove_avatar(avatar.avatar_id)
                 if room.empty:
                     self.rooms.pop(room.name, None)
-        if avatar.token is None or self.reconnect_grace <= 0:
+        if at_once or self.reconnect_grace <= 0:
             forget()
         else:
             asyncio.get_running_loop().call_later(self.reconnect_grace, forget)
@@ -592,6 +602,14 @@ def _cap_send_buffers(ws: ServerConnection, limits: ServerLimits) -> None:
                         limits.send_unsent_bytes)
     # a send waits until the transport has handed everything to the kernel
     transport.set_write_buffer_limits(high=0)
+
+
+def _closed_by_client(ws: ServerConnection) -> bool:
+    """The client ended the connection on purpose (it sent a normal close first), not a
+    drop: its avatar need not wait for a reconnect."""
+    protocol = ws.protocol
+    return (protocol.close_rcvd is not None and bool(protocol.close_rcvd_then_sent)
+            and protocol.close_rcvd.code == CloseCode.NORMAL_CLOSURE)
 
 
 def _peer(ws: ServerConnection) -> str:

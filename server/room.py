@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import hmac
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 
@@ -33,7 +34,7 @@ from posecast.protocol import (
 from posecast.protocol.arrivals import ArrivalStamps
 from posecast.protocol.codec import encode_avatar_batch
 from posecast.protocol.messages import TrackerPoses
-from posecast.protocol.validation import sendable_rows
+from posecast.protocol.validation import MAX_NAME_CHARS, sendable_rows
 from posecast.server.avatars import AvatarSolver
 from posecast.server.busy import OpenBursts
 from posecast.server.cadence import Cadence
@@ -81,7 +82,7 @@ COALESCE_MAX_S = 0.0007
 class Avatar:
     avatar_id: int
     display_name: str
-    token: str | None
+    resume: str  # the random secret its player reconnects with (Welcome.resume)
     info: AvatarInfo | None = None  # the calibrated skeleton, once calibrated
     connected: bool = True
     # its player's live connection: its arrival stamps tell that a frame of this avatar
@@ -134,10 +135,23 @@ class Room:
     _awaited: set[int] = field(default_factory=set)  # players due within the open burst
 
     # ------------------------------------------------------------------ players
-    def find_by_token(self, token: str | None) -> Avatar | None:
-        if token is None:
+    def find_by_resume(self, resume: str | None) -> Avatar | None:
+        """The avatar whose player reconnects with this secret (Welcome.resume)."""
+        if resume is None:
             return None
-        return next((a for a in self.avatars.values() if a.token == token), None)
+        return next((a for a in self.avatars.values()
+                     if hmac.compare_digest(a.resume, resume)), None)
+
+    def unique_name(self, name: str) -> str:
+        """``name``, or "name 2", "name 3", ... if an avatar of the room has it: viewers
+        label avatars by name, and two alike would be told apart by nothing."""
+        taken = {a.display_name for a in self.avatars.values()}
+        candidate, k = name, 1
+        while candidate in taken:
+            k += 1
+            suffix = f" {k}"
+            candidate = name[:MAX_NAME_CHARS - len(suffix)] + suffix
+        return candidate
 
     def calibrate(self, avatar: Avatar, frame_roles: tuple[str, ...],
                   poses: np.ndarray) -> Calibration:

@@ -62,11 +62,13 @@ def run(test: Callable[[str], Awaitable[None]], session: Session) -> None:
 
 
 @asynccontextmanager
-async def joined(url: str, role: str, room: str, token: str | None = None
+async def joined(url: str, role: str, room: str, token: str | None = None,
+                 resume: str | None = None, name: str | None = None,
                  ) -> AsyncIterator[tuple[ClientConnection, Welcome]]:
     async with connect(url, compression=None) as ws:
         await ws.send(encode(Hello(protocol_version=PROTOCOL_VERSION, role=role, room=room,
-                                   display_name=f"{role}-{room}", token=token)))
+                                   display_name=name or f"{role}-{room}", token=token,
+                                   resume=resume)))
         welcome = await receive(ws)
         assert isinstance(welcome, Welcome)
         yield ws, welcome
@@ -224,7 +226,7 @@ def test_join_leave_and_rooms_are_isolated(session: Session,
                 await player.send(tracker(recording, 1))
                 batch = await receive_type(spec_a, AvatarBatch)
                 assert [f.avatar_id for f in batch.frames] == [welcome.avatar_id]
-            # the player left without a token: the avatar goes at once
+            # the player closed the connection itself: the avatar goes at once
             gone = await receive_type(spec_a, AvatarRoster)
             assert gone.removed == (welcome.avatar_id,)  # type: ignore[attr-defined]
             # room b heard nothing of room a
@@ -239,11 +241,13 @@ def test_reconnecting_player_keeps_its_avatar(session: Session,
     async def test(url: str) -> None:
         async with joined(url, "spectator", "r") as (spec, _):
             await receive(spec)
-            async with joined(url, "player", "r", token="alice") as (player, first):
+            async with joined(url, "player", "r") as (player, first):
+                assert first.resume is not None and not first.resumed
                 await player.send(calibration(recording))
                 await receive_type(spec, AvatarRoster)
-            async with joined(url, "player", "r", token="alice") as (player, second):
-                assert second.avatar_id == first.avatar_id
+                player.transport.abort()  # dropped, not closed: the avatar waits
+            async with joined(url, "player", "r", resume=first.resume) as (player, second):
+                assert second.avatar_id == first.avatar_id and second.resumed
                 # still calibrated: frames are solved without a new T-pose
                 await player.send(tracker(recording, 2))
                 batch = await receive_type(spec, AvatarBatch)
@@ -368,7 +372,7 @@ def test_a_burst_waits_for_a_frame_read_but_not_yet_handled(session: Session,
         # a window no loaded machine outlasts in the passes below; ended by hand after
         room = Room("r", AvatarSolver(session.rig), Metrics(), coalesce_max_s=60.0)
         for a in (1, 2):
-            room.avatars[a] = avatar = Avatar(a, f"player {a}", None)
+            room.avatars[a] = avatar = Avatar(a, f"player {a}", f"resume-{a}")
             room.calibrate(avatar, rec.devices, poses(rec, 0))
         # what a connection holds once the second player's frame is read from its socket
         room.avatars[2].connection = SimpleNamespace(arrivals=deque([now()]))

@@ -85,7 +85,7 @@ def _room(session: Session, rec: ViveRecording, window: float,
     t_pose = np.concatenate([rec.positions[0], rec.rotations[0]], axis=1)
     cal = Calibrate(roles=rec.devices, poses=t_pose, t_capture=0.0, clock_offset=0.0)
     for a in (1, 2):
-        room.avatars[a] = avatar = Avatar(a, f"player {a}", None)
+        room.avatars[a] = avatar = Avatar(a, f"player {a}", f"resume-{a}")
         room.calibrate(avatar, cal.roles, cal.poses)
     return room
 

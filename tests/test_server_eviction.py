@@ -63,8 +63,14 @@ async def server(session: Session) -> AsyncIterator[tuple[str, asyncio.Event,
         await asyncio.wait_for(task, 3 * TIMEOUT)
 
 
-async def join(url: str, role: str, room: str = ROOM, token: str | None = None,
+async def join(url: str, role: str, room: str = ROOM, resume: str | None = None,
                rcvbuf: int | None = None) -> ClientConnection:
+    """``join_welcomed`` without the Welcome."""
+    return (await join_welcomed(url, role, room, resume, rcvbuf))[0]
+
+
+async def join_welcomed(url: str, role: str, room: str = ROOM, resume: str | None = None,
+                        rcvbuf: int | None = None) -> tuple[ClientConnection, Welcome]:
     """A raw client; ``rcvbuf``: a small kernel receive buffer and a one-message queue,
     so that what it has not read waits on the server's side (a slow link, not a client
     hoarding megabytes)."""
@@ -77,9 +83,10 @@ async def join(url: str, role: str, room: str = ROOM, token: str | None = None,
     ws = await connect(url, sock=sock, compression=None, max_size=None,
                        max_queue=1 if rcvbuf is not None else 16)
     await ws.send(encode(Hello(protocol_version=PROTOCOL_VERSION, role=role, room=room,
-                               display_name=role, token=token)))
-    assert isinstance(decode(await asyncio.wait_for(ws.recv(), TIMEOUT)), Welcome)
-    return ws
+                               display_name=role, resume=resume)))
+    welcome = decode(await asyncio.wait_for(ws.recv(), TIMEOUT))
+    assert isinstance(welcome, Welcome)
+    return ws, welcome
 
 
 
@@ -113,7 +120,7 @@ def test_frames_out_of_order_are_refused_and_a_reconnect_starts_again(
     async def main() -> None:
         async with server(session) as (url, _, _):
             viewer = await join(url, "spectator")
-            player = await join(url, "player", token="tok-seq")
+            player, welcome = await join_welcomed(url, "player")
             await player.send(calibrate(motion))
             for seq in (0, 1, 2, 5):
                 await player.send(frame(motion, seq))
@@ -131,9 +138,10 @@ def test_frames_out_of_order_are_refused_and_a_reconnect_starts_again(
                 assert isinstance(batch, AvatarBatch)
                 seen.update(int(s) for s in batch.seqs)
             assert 3 not in seen  # the refused frame was never solved
-            await player.close()
-            # the same token on a new connection counts from 0 again
-            again = await join(url, "player", token="tok-seq")
+            player.transport.abort()  # dropped: its avatar waits for it
+            # the same avatar on a new connection counts from 0 again
+            again, back = await join_welcomed(url, "player", resume=welcome.resume)
+            assert back.resumed and back.avatar_id == welcome.avatar_id
             await again.send(frame(motion, 0))
             await again.send(encode(Ping(t0=0.0)))
             assert isinstance(await receive_type(again, Pong), Pong)
@@ -165,7 +173,7 @@ def test_an_idle_player_is_closed_and_its_avatar_leaves(motion: ViveRecording) -
     async def main() -> None:
         async with server(session) as (url, _, _):
             viewer = await join(url, "spectator")
-            player = await join(url, "player", token="tok-idle")
+            player = await join(url, "player")
             await player.send(calibrate(motion))
             roster = await receive_type(viewer, AvatarRoster)
             while isinstance(roster, AvatarRoster) and not roster.avatars:  # the one at join
