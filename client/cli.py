@@ -558,7 +558,7 @@ def _serve(args: argparse.Namespace) -> int:
         tls = _server_tls(args)
     except ValueError as err:
         print(f"posecast serve: {err} (see posecast serve --help)", file=sys.stderr)
-        return 2
+        raise SystemExit(2) from None  # a usage error, as argparse ends one
     install_fast_loop()
     session = Session(tokens=tokens, solver=args.solver, busy=args.busy_poll,
                       helper=None if args.helper else False,

@@ -137,7 +137,9 @@ def test_limits_that_go_together_are_one_line_when_they_do_not(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     config = tmp_path / "posecast.toml"
     config.write_text("[limits]\nplayers_per_room = 200\n")  # over avatars_per_room's 128
-    assert main(["serve", "--config", str(config)]) == 2
+    with pytest.raises(SystemExit) as exit_info:
+        main(["serve", "--config", str(config)])
+    assert exit_info.value.code == 2
     line = _one_line(capsys.readouterr().err, "serve", "[limits]")
     assert "avatars_per_room (128) must be at least players_per_room (200)" in line
 
