@@ -51,9 +51,11 @@ from posecast.server.busy import BusyPoll
 from posecast.server.clock import now
 from posecast.server.eviction import Watchdog, close_now
 from posecast.server.helper import spare_cores
+from posecast.server.http_routes import session_routes
 from posecast.server.limits import Budget, ServerLimits, player_frames_per_s
 from posecast.server.metrics import Metrics
 from posecast.server.outbox import Outbox
+from posecast.server.prometheus import session_registry
 from posecast.server.rejection_log import LineBudget, RejectionLog
 from posecast.server.room import Avatar, Delivery, Room, Spectator, send_deliveries
 from posecast.server.tls import allowed_origins
@@ -97,6 +99,9 @@ class Session:
         self._address_calibrations: dict[str, Budget] = {}  # per address with connections
         self._closing: set[asyncio.Task[None]] = set()
         self.metrics = Metrics()
+        self.started = now()  # uptime, for /healthz and /metrics
+        # GET /metrics: this session's figures, read when scraped (server.prometheus)
+        self.registry = session_registry(self)
         self._ids = itertools.count(1)
         self._owners: dict[int, ServerConnection] = {}  # avatar id -> its live connection
         # log lines about rejections: sampled per connection, capped for the server
@@ -124,6 +129,11 @@ class Session:
                                     bursts=self.busy.bursts if self.busy else None,
                                     limits=self.limits)
         return self.rooms[name]
+
+    @property
+    def open_connections(self) -> int:
+        """Websocket connections open now (admitted within the caps)."""
+        return sum(self._open_from.values())
 
     async def handle(self, ws: ServerConnection) -> None:
         """A connection, admitted within the caps on connections (``ServerLimits``)."""
@@ -548,6 +558,7 @@ async def run_server(host: str, port: int, session: Session | None = None,
     server: Server
     async with serve(session.handle, host, port, compression=None,
                      create_connection=TimestampedServerConnection,
+                     process_request=session_routes(session),  # GET /healthz, /metrics
                      max_size=session.limits.max_message_bytes,
                      max_queue=session.limits.max_queue, ssl=tls,
                      origins=allowed_origins(origins)) as server:

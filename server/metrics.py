@@ -6,6 +6,8 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass, field
 
+from posecast.server.latency import ServerLatency
+
 
 @dataclass
 class Metrics:
@@ -30,6 +32,8 @@ class Metrics:
     # refusals by the ServerLimits field that made them: a rate (frames, calibrations,
     # errors: the connection closed) or a cap (rooms, players_per_room, ...)
     limited: Counter[str] = field(default_factory=Counter)
+    # per solved avatar-frame, filled a batch at a time (Room); read by /metrics
+    latency: ServerLatency = field(default_factory=ServerLatency)
 
     def as_json(self) -> dict[str, object]:
         return {"connections": self.connections, "frames_received": self.frames_received,

@@ -57,11 +57,13 @@ class SharedBatch:
                      t_solved)
         self.size = len(avatar_ids)
         self._encoded: bytes | None = None
+        self.t_sent: float | None = None  # when first encoded: its bytes went out
         self._batch: AvatarBatch | None = None
 
     def encoded(self) -> bytes:
         if self._encoded is None:  # t_sent: now, as the bytes go to the sockets
-            self._encoded = encode_avatar_batch(*self.args, t_sent=now())
+            self.t_sent = now()
+            self._encoded = encode_avatar_batch(*self.args, t_sent=self.t_sent)
         return self._encoded
 
     def frame(self, index: int) -> AvatarFrame:
@@ -275,8 +277,8 @@ class Room:
         # the spectators' own row checks: a row they would refuse is dropped alone,
         # never the batch (one compiled pass over the batch)
         keep = np.empty(len(pending), dtype=np.bool_)
-        unsendable = sendable_rows(roots, rotations, np.array(t_capture),
-                                   np.array(t_received), t_solved, keep)
+        captured, arrived = np.array(t_capture), np.array(t_received)
+        unsendable = sendable_rows(roots, rotations, captured, arrived, t_solved, keep)
         if unsendable:
             self.metrics.frames_unsendable += unsendable
             pending = [p for p, k in zip(pending, keep.tolist(), strict=True) if k]
@@ -286,11 +288,16 @@ class Room:
             t_capture = [f.t_capture_server for _, f, _ in pending]
             t_received = [t for _, _, t in pending]
             roots, rotations = roots[keep], rotations[keep]
+            captured, arrived = captured[keep], arrived[keep]
         shared = SharedBatch(ids, [f.seq for _, f, _ in pending], roots, rotations,
                              t_capture, t_received, t_solved)
         self.metrics.frames_solved += len(pending)
         self.metrics.batches += 1
         self.deliver(shared)
+        # after the batch is out, so that it waits for nothing: a few numpy calls for the
+        # whole batch. Sent: when its bytes went to a socket, else now (in the outboxes)
+        self.metrics.latency.batch(captured, arrived, t_solved,
+                                   shared.t_sent if shared.t_sent is not None else now())
 
     def deliver(self, shared: SharedBatch) -> None:
         """Every spectator gets the batch: written to the socket at once when it is idle

@@ -1,0 +1,117 @@
+"""Plain HTTP on the websocket port: ``GET /healthz`` and ``GET /metrics``.
+
+websockets hands every opening request to ``HttpRoutes`` (its ``process_request`` hook)
+before the handshake: a websocket upgrade goes on as before, on any path; any other
+request is answered from the route table and the connection closed. A route is a path
+and a function of no arguments, so a page (e.g. ``/``, a browser spectator) is one more
+entry of ``session_routes``.
+"""
+
+from __future__ import annotations
+
+import http
+import json
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+from urllib.parse import urlsplit
+
+from websockets.asyncio.server import ServerConnection
+from websockets.datastructures import Headers
+from websockets.http11 import Request, Response
+
+from posecast.server.clock import now
+from posecast.server.prometheus import CONTENT_TYPE, metrics_text
+
+if TYPE_CHECKING:  # the routes read the session: imported for its type alone
+    from posecast.server.app import Session
+
+
+@dataclass(frozen=True)
+class Reply:
+    body: bytes
+    content_type: str
+    status: http.HTTPStatus = http.HTTPStatus.OK
+
+
+Route = Callable[[], Reply]
+
+# /metrics costs ~0.5 ms of the event loop to build (every frame waits meanwhile): made at
+# most once a second, so that a client asking in a loop costs what any request costs.
+# Prometheus scrapes every 15 s or so
+METRICS_MAX_AGE_S = 1.0
+
+
+class HttpRoutes:
+    """``process_request`` for websockets' ``serve``: GET on a known path gets its
+    route's reply; an unknown path 404, another method 405."""
+
+    def __init__(self, routes: Mapping[str, Route]) -> None:
+        self.routes = dict(routes)
+
+    def __call__(self, connection: ServerConnection, request: Request) -> Response | None:
+        if _is_upgrade(request):
+            return None  # a websocket client: the handshake goes on
+        route = self.routes.get(urlsplit(request.path).path)
+        if route is None:
+            reply = _text(http.HTTPStatus.NOT_FOUND,
+                          f"no such page; try {', '.join(sorted(self.routes))}\n")
+        elif request.method != "GET":
+            reply = _text(http.HTTPStatus.METHOD_NOT_ALLOWED,
+                          f"{request.method} is not allowed here: GET only\n")
+        else:
+            reply = route()
+        return _response(reply)
+
+
+def session_routes(session: Session) -> HttpRoutes:
+    """The routes of ``posecast serve``."""
+    return HttpRoutes({
+        "/healthz": lambda: health(session),
+        "/metrics": Reused(lambda: Reply(metrics_text(session.registry), CONTENT_TYPE),
+                           METRICS_MAX_AGE_S),
+    })
+
+
+class Reused:
+    """A route whose reply is made again only when the last one is ``max_age_s`` old."""
+
+    def __init__(self, route: Route, max_age_s: float,
+                 clock: Callable[[], float] = now) -> None:
+        self.route, self.max_age_s, self.clock = route, max_age_s, clock
+        self._reply: Reply | None = None
+        self._made = 0.0
+
+    def __call__(self) -> Reply:
+        t = self.clock()
+        if self._reply is None or not 0 <= t - self._made < self.max_age_s:
+            self._reply, self._made = self.route(), t
+        return self._reply
+
+
+def health(session: Session) -> Reply:
+    """200 while the server serves, with what it holds (for people and probes)."""
+    rooms = list(session.rooms.values())
+    body = {"status": "ok", "uptime_s": round(now() - session.started, 3),
+            "rooms": len(rooms), "connections": session.open_connections,
+            "players": sum(a.connected for r in rooms for a in r.avatars.values()),
+            "spectators": sum(len(r.spectators) for r in rooms)}
+    return Reply(json.dumps(body).encode() + b"\n", "application/json")
+
+
+def _is_upgrade(request: Request) -> bool:
+    upgrade = ",".join(request.headers.get_all("Upgrade")).lower()
+    return "websocket" in upgrade
+
+
+def _text(status: http.HTTPStatus, text: str) -> Reply:
+    return Reply(text.encode(), "text/plain; charset=utf-8", status)
+
+
+def _response(reply: Reply) -> Response:
+    headers = Headers([("Content-Type", reply.content_type),
+                       ("Content-Length", str(len(reply.body))),
+                       ("Cache-Control", "no-store"), ("Connection", "close")])
+    if reply.status == http.HTTPStatus.METHOD_NOT_ALLOWED:
+        headers["Allow"] = "GET"
+    return Response(reply.status.value, reply.status.phrase, headers, reply.body)

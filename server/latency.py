@@ -1,0 +1,77 @@
+"""Latency histograms of the server's stages, per avatar-frame, for ``/metrics``.
+
+Filled a batch at a time with a few numpy calls over the batch's time arrays (no Python
+work per frame, and never prometheus_client's own ``Histogram.observe``, which takes a
+lock per value): each value is counted into fixed buckets, and a scrape reads the counts
+(``server.prometheus``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+# upper bounds (seconds, inclusive as Prometheus' "le") from 0.1 ms to 1 s: fine steps
+# where the server's figures lie (p99 of ``server`` ~0.5 ms, 16 players), coarse beyond
+BUCKET_BOUNDS_S: tuple[float, ...] = (
+    0.0001, 0.0002, 0.0003, 0.0004, 0.0005, 0.0006, 0.0008, 0.001, 0.0015, 0.002, 0.003,
+    0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0)
+
+# every stage on the server's clock, as the demo names them (README, "The whole session
+# on one machine"): capture (the player's t_capture + clock_offset) to its bytes' arrival;
+# arrival to solved; arrival to the batch handed to the sockets (or the outboxes)
+SERVER_STAGES: tuple[str, ...] = ("capture_to_server", "solve", "server")
+# the spectators' stages (received, presented) come from what viewers report back, a
+# later issue (browsers report presentation times): a ``StageHistograms`` of their own,
+# filled where those reports are read, and exposed beside these by the collector
+
+
+class StageHistograms:
+    """Counts per bucket (the last is above every bound: +Inf) and sums, one row per
+    stage."""
+
+    def __init__(self, stages: tuple[str, ...],
+                 bounds: tuple[float, ...] = BUCKET_BOUNDS_S) -> None:
+        self.stages = stages
+        self.bounds = bounds
+        self._bounds = np.array(bounds, dtype=np.float64)
+        self.counts = np.zeros((len(stages), len(bounds) + 1), dtype=np.int64)
+        self.sums = np.zeros(len(stages), dtype=np.float64)
+        self._flat = self.counts.reshape(-1)  # a view: add.at works on one axis
+        # each stage's first bucket in the flat counts
+        self._offsets = (np.arange(len(stages), dtype=np.intp) * (len(bounds) + 1))[:, None]
+
+    def observe(self, values: np.ndarray) -> None:
+        """``values``: seconds, shape (stages, n): one column per avatar-frame."""
+        index = np.searchsorted(self._bounds, values, side="left")  # first bound >= v
+        index += self._offsets
+        np.add.at(self._flat, index.reshape(-1), 1)
+        self.sums += values.sum(axis=1)
+
+    def cumulative(self, stage: str) -> tuple[list[tuple[str, float]], float]:
+        """Prometheus' buckets of one stage, cumulative, ending with +Inf (the count);
+        and the sum."""
+        row = self.stages.index(stage)
+        totals = np.cumsum(self.counts[row]).tolist()
+        buckets = [(repr(b), float(c)) for b, c in zip(self.bounds, totals, strict=False)]
+        buckets.append(("+Inf", float(totals[-1])))
+        return buckets, float(self.sums[row])
+
+    def count(self, stage: str) -> int:
+        return int(self.counts[self.stages.index(stage)].sum())
+
+
+class ServerLatency(StageHistograms):
+    """The server's stages of each avatar-frame it solves (``SERVER_STAGES``)."""
+
+    def __init__(self) -> None:
+        super().__init__(SERVER_STAGES)
+
+    def batch(self, t_capture: np.ndarray, t_received: np.ndarray, t_solved: float,
+              t_sent: float) -> None:
+        """One solved batch: each frame's capture and arrival times, the batch's solve
+        and send times (all on the server's clock)."""
+        values = np.empty((3, t_received.shape[0]), dtype=np.float64)
+        np.subtract(t_received, t_capture, out=values[0])
+        np.subtract(t_solved, t_received, out=values[1])
+        np.subtract(t_sent, t_received, out=values[2])
+        self.observe(values)

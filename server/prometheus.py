@@ -1,0 +1,113 @@
+"""The session's figures in Prometheus' text format, for ``GET /metrics``.
+
+A collector reads ``Session.metrics`` and the rooms when scraped, so the server's frame
+path counts plain integers and numpy arrays and never touches prometheus_client. Each
+Session has a registry of its own (not the process-wide default): tests run many
+servers in one process, and each scrape must show its own server alone.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import TYPE_CHECKING
+
+from prometheus_client import CollectorRegistry, generate_latest
+from prometheus_client.core import (
+    CounterMetricFamily,
+    GaugeMetricFamily,
+    HistogramMetricFamily,
+    Metric,
+)
+from prometheus_client.process_collector import ProcessCollector
+from prometheus_client.registry import Collector
+
+from posecast.protocol import ErrorCode
+from posecast.server.clock import now
+
+if TYPE_CHECKING:  # the session holds the registry: imported for its type alone
+    from posecast.server.app import Session
+
+# the classic text format, which every Prometheus reads (what generate_latest writes)
+CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
+
+# (Metrics field, help) of each frame counter: avatar-frames, as in the demo's table
+FRAME_COUNTERS: tuple[tuple[str, str], ...] = (
+    ("frames_received", "Tracker frames received from players."),
+    ("frames_solved", "Avatar-frames solved and offered to the room's spectators."),
+    ("frames_superseded", "Tracker frames replaced by a newer one of their player "
+                          "before being solved."),
+    ("frames_discarded", "Tracker frames never solved: their avatar left or "
+                         "recalibrated, or the server stopped."),
+    ("frames_rejected", "Tracker frames answered with an error."),
+    ("frames_unsendable", "Avatar-frames solved but dropped: a spectator would refuse "
+                          "the row."),
+    ("frames_delivered", "Avatar-frames handed to a spectator's socket, summed over "
+                         "spectators."),
+    ("frames_dropped", "Avatar-frames never sent to a spectator: a newer one replaced "
+                       "them (latest wins), or the spectator left."),
+)
+
+
+class SessionCollector(Collector):
+    """Every figure of a session, read at scrape time."""
+
+    def __init__(self, session: Session) -> None:
+        self.session = session
+
+    def collect(self) -> Iterator[Metric]:
+        s, m = self.session, self.session.metrics
+        yield CounterMetricFamily("posecast_connections", "Websocket connections accepted.",
+                                  value=m.connections)
+        for name, words in FRAME_COUNTERS:
+            yield CounterMetricFamily(f"posecast_{name}", words, value=getattr(m, name))
+        yield CounterMetricFamily("posecast_batches", "Batches solved (one solve, one "
+                                  "message per spectator).", value=m.batches)
+        rejected = CounterMetricFamily("posecast_rejections", "Messages and joins "
+                                       "refused with an error, by its code.",
+                                       labels=["code"])
+        # every code, zeros too: a rate over a series that appears late misses its start
+        for code in sorted({*ErrorCode, *m.rejected}):
+            rejected.add_metric([str(code)], m.rejected.get(code, 0))
+        yield rejected
+        limited = CounterMetricFamily("posecast_limited", "Refusals and closes by the "
+                                      "server limit that made them.", labels=["limit"])
+        for limit, n in sorted(m.limited.items()):
+            limited.add_metric([limit], n)
+        yield limited
+
+        rooms = list(s.rooms.values())
+        yield GaugeMetricFamily("posecast_open_connections", "Websocket connections "
+                                "open now.", value=s.open_connections)
+        yield GaugeMetricFamily("posecast_rooms", "Rooms open now.", value=len(rooms))
+        yield GaugeMetricFamily("posecast_players", "Avatars whose player is connected.",
+                                value=sum(a.connected for r in rooms
+                                          for a in r.avatars.values()))
+        yield GaugeMetricFamily("posecast_spectators", "Spectators connected.",
+                                value=sum(len(r.spectators) for r in rooms))
+        yield GaugeMetricFamily("posecast_uptime_seconds", "Seconds since the session "
+                                "started.", value=now() - s.started)
+
+        latency = HistogramMetricFamily(
+            "posecast_latency_seconds", "Per solved avatar-frame, on the server's clock: "
+            "capture_to_server (captured to its bytes' arrival), solve (arrival to "
+            "solved), server (arrival to handed to the sockets).", labels=["stage"])
+        histograms = m.latency
+        for stage in histograms.stages:
+            buckets, total = histograms.cumulative(stage)
+            latency.add_metric([stage], buckets, total)
+        # the spectators' stages (a later issue) add their rows here, from their own
+        # StageHistograms (server.latency)
+        yield latency
+
+
+def session_registry(session: Session) -> CollectorRegistry:
+    """A registry of the session's own: its figures and this process's (CPU, memory,
+    open files)."""
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(SessionCollector(session))
+    ProcessCollector(registry=registry)
+    return registry
+
+
+def metrics_text(registry: CollectorRegistry) -> bytes:
+    return generate_latest(registry)
