@@ -170,6 +170,9 @@ def _parser() -> argparse.ArgumentParser:
     pl.add_argument("--token", default=None, type=arg.token,
                     help="your join token from the host (posecast token), for a server "
                          "with a secret")
+    pl.add_argument("--no-reconnect", dest="reconnect", action="store_false",
+                    help="end when the connection is lost (by default: reconnect with "
+                         "backoff and resume the avatar, still calibrated)")
     pl.add_argument("--devices", type=arg.existing_file, default=None,
                     help="TOML file mapping tracker serial numbers to roles (openvr)")
     pl.add_argument("--loop", action="store_true", help="replay a recording forever")
@@ -213,6 +216,9 @@ def _parser() -> argparse.ArgumentParser:
     vw.add_argument("--token", default=None, type=arg.token,
                     help="your join token from the host (posecast token), for a server "
                          "with a secret")
+    vw.add_argument("--no-reconnect", dest="reconnect", action="store_false",
+                    help="end when the connection is lost (by default: reconnect with "
+                         "backoff to the same room)")
     vw.add_argument("--max-rate", type=arg.rate_hz, default=None,
                     help="ask the server for at most this many batches per second")
     vw.add_argument("--json", action="store_true",
@@ -463,7 +469,7 @@ async def _view_live(args: argparse.Namespace, watched: list[Spectator]
                      ) -> tuple[ViewerStats | None, int]:
     """The viewer, with a word on stderr about where it joined and whom it waits for,
     until its frames are done, its window closes or a signal stops it."""
-    from posecast.client.connection import stop_task
+    from posecast.client.connection import Reconnect, stop_task
     from posecast.client.console import StatusLine, report_spectator, run_until_signal
     from posecast.client.viewer import Mode, ViewMode, run_headless_viewer, run_window_viewer
 
@@ -472,6 +478,8 @@ async def _view_live(args: argparse.Namespace, watched: list[Spectator]
     reporters: list[asyncio.Task[None]] = []
 
     def on_spectator(spectator: Spectator) -> None:
+        if args.reconnect:  # a word on stderr when the session is lost and when it is back
+            spectator.reconnect = Reconnect(say=status.say)
         watched.append(spectator)
         reporters.append(asyncio.create_task(report_spectator(spectator, status)))
 
@@ -614,7 +622,8 @@ def _play(args: argparse.Namespace) -> int:
     try:
         player = Player(args.server, args.room, args.name, source, token=args.token,
                         cafile=args.cafile)
-        signum = asyncio.run(_play_live(player, delay, args.seconds, args.source))
+        signum = asyncio.run(_play_live(player, delay, args.seconds, args.source,
+                                        args.reconnect))
     except SessionError as err:
         return _fail("play", _session_words(err))
     finally:
@@ -624,13 +633,15 @@ def _play(args: argparse.Namespace) -> int:
 
 
 async def _play_live(player: Player, delay: float, seconds: float | None,
-                     source: str) -> int:
+                     source: str, reconnect: bool = True) -> int:
     """Stream with a word on stderr about where it joined and a progress line, until
     the source or the time ends or a signal stops it (its number is returned)."""
-    from posecast.client.connection import stop_task
+    from posecast.client.connection import Reconnect, stop_task
     from posecast.client.console import StatusLine, report_player, run_until_signal
 
     status = StatusLine("posecast play")
+    if reconnect:  # a word on stderr when the session is lost and when it is back
+        player.reconnect = Reconnect(say=status.say)
     stop = asyncio.Event()
     reporter = asyncio.create_task(report_player(player, status, source))
     try:

@@ -15,8 +15,11 @@ import asyncio
 import contextlib
 import errno
 import logging
+import random
 import socket
 import struct
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 from typing import Literal
@@ -64,6 +67,14 @@ log = logging.getLogger(__name__)
 # first room may stall while its solver compiles)
 OPEN_TIMEOUT = 10.0
 CLOSE_TIMEOUT = 1.0  # a peer that does not answer our close is not worth a longer wait
+# close codes after which a client tries again: going away (a server stopping), lost
+# (1006), internal error, service restart, try again later, bad gateway (a proxy)
+RETRY_CLOSE_CODES = frozenset({1001, 1006, 1011, 1012, 1013, 1014})
+# reconnecting: the first wait, doubling up to the longest, each +-20% so that the
+# players of a restarted server do not all come back in the same millisecond
+RECONNECT_FIRST_S = 0.25
+RECONNECT_MAX_S = 2.0
+RECONNECT_GIVE_UP_S = 600.0  # a server down for ten minutes is not restarting
 # how long a viewer may spend taking a backlog before it draws (``Session.catch_up``):
 # a 90 Hz room's backlog of a 75 ms draw is taken in well under a millisecond
 CATCH_UP_S = 0.010
@@ -81,12 +92,15 @@ class SessionError(Exception):
     """A session could not start or ended unasked; ``str()`` is one line for the user."""
 
     def __init__(self, url: str, reason: str, code: str | None = None,
-                 reached: bool = True) -> None:
+                 reached: bool = True, retry: bool = False) -> None:
         super().__init__(f"{url}: {reason}")
         self.url = url
         self.reason = reason
         self.code = code  # the server's ErrorCode when it refused us, else None
         self.reached = reached  # False: no websocket to the server opened at all
+        # worth trying again (``Reconnect``): the server went away, restarts or is not
+        # up yet; not when it refused us, told us to go, or is not a posecast server
+        self.retry = retry
 
 
 def _connect_reason(exc: BaseException, url: str = "") -> str:
@@ -117,6 +131,26 @@ def _connect_reason(exc: BaseException, url: str = "") -> str:
     if isinstance(exc, OSError):
         return f"cannot connect ({exc.strerror or exc})"
     return f"{type(exc).__name__}: {exc}"
+
+
+def _worth_retrying(exc: BaseException, url: str) -> bool:
+    """Connecting failed in a way that may pass: refused or unreachable (a server that
+    restarts), timed out, or a proxy's 5xx while the server behind it is down; not a TLS
+    failure, a bad URL or something that is not a posecast server."""
+    if tls_failure(exc, urlsplit(url).scheme == "wss") is not None:
+        return False
+    if isinstance(exc, InvalidStatus):
+        return exc.response.status_code >= 500
+    if isinstance(exc, InvalidURI | InvalidHandshake):
+        return False
+    return isinstance(exc, OSError | TimeoutError)
+
+
+def _retry_after_close(exc: ConnectionClosed) -> bool:
+    """The connection ended in a way a reconnect can mend: lost without a close, or
+    closed by a server going away, restarting or asking us to come back later; not a
+    goodbye, a takeover ("reconnected elsewhere", 1000) or a policy close (1008)."""
+    return exc.rcvd is None or exc.rcvd.code in RETRY_CLOSE_CODES
 
 
 def _closed_reason(exc: ConnectionClosed, last_error: Error | None) -> str:
@@ -168,7 +202,8 @@ async def open_session(url: str, hello: Hello, *, timeout: float = OPEN_TIMEOUT,
                            create_connection=TimestampedConnection)
     except (OSError, InvalidURI, InvalidHandshake, TimeoutError) as exc:
         raise SessionError(url, _connect_reason(exc, url),
-                           reached=isinstance(exc, InvalidHandshake)) from None
+                           reached=isinstance(exc, InvalidHandshake),
+                           retry=_worth_retrying(exc, url)) from None
     try:
         welcome = await _handshake(url, ws, hello, timeout)
     except BaseException:  # SessionError, or a cancel mid-handshake: do not leak the socket
@@ -185,9 +220,11 @@ async def _handshake(url: str, ws: ClientConnection, hello: Hello, timeout: floa
         arrival_time(ws, now)  # the welcome's stamp: receive() pairs the rest in order
         reply = decode(data)
     except TimeoutError:
-        raise SessionError(url, f"no welcome from the server within {timeout:g} s") from None
+        raise SessionError(url, f"no welcome from the server within {timeout:g} s",
+                           retry=True) from None
     except ConnectionClosed as exc:
-        raise SessionError(url, _closed_reason(exc, None) + " during the handshake") from None
+        raise SessionError(url, _closed_reason(exc, None) + " during the handshake",
+                           retry=_retry_after_close(exc)) from None
     except ProtocolError as exc:
         raise SessionError(url, f"not a posecast server reply ({exc})") from None
     if isinstance(reply, Error):
@@ -244,7 +281,8 @@ class Session:
         try:
             await self.ws.send(encode(message))
         except ConnectionClosed as exc:
-            raise SessionError(self.url, _closed_reason(exc, self.last_error)) from None
+            raise SessionError(self.url, _closed_reason(exc, self.last_error),
+                               retry=not self._leaving and _retry_after_close(exc)) from None
 
     def send_now(self, data: bytes) -> bool:
         """Write a message already encoded at once, without waiting (a player's frame
@@ -290,7 +328,8 @@ class Session:
             except ConnectionClosed as exc:
                 why = ("the session was closed" if self._leaving
                        else _closed_reason(exc, self.last_error))
-                raise SessionError(self.url, why) from None
+                raise SessionError(self.url, why, retry=not self._leaving
+                                   and _retry_after_close(exc)) from None
             t = arrival_time(self.ws, now)  # when the bytes reached this process
             if not getattr(self.ws, "arrivals", None):
                 # decode on the loop's next pass: when many connections share a process
@@ -379,3 +418,50 @@ def unread_bytes(ws: ClientConnection) -> int:
                                                b"\0\0\0\0"))[0]
     except (ImportError, OSError, ValueError):  # not POSIX, closed, or not a socket
         return 0
+
+
+@dataclass
+class Reconnect:
+    """How a player or viewer comes back after its session was lost (``SessionError``
+    with ``retry``): waits that double from ``first_s`` to ``max_s``, one line through
+    ``say`` when the session is lost and one when it is back, and a SessionError when
+    ``give_up_s`` passed or the server refuses us."""
+
+    say: Callable[[str], None] = log.warning
+    first_s: float = RECONNECT_FIRST_S
+    max_s: float = RECONNECT_MAX_S
+    give_up_s: float = RECONNECT_GIVE_UP_S
+    count: int = 0  # sessions opened again
+
+    async def again(self, lost: SessionError, hello: Hello, *, cafile: Path | None = None,
+                    stop: asyncio.Event | None = None) -> Session | None:
+        """A new session after ``lost`` (the same ``hello``; a player's carries its
+        resume secret), or None if ``stop`` was set meanwhile."""
+        url = lost.url
+        self.say(f"connection lost ({lost.reason}); reconnecting")
+        t0, delay = now(), self.first_s
+        while True:
+            if stop is None:
+                await asyncio.sleep(delay * random.uniform(0.8, 1.2))
+            else:
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(stop.wait(), delay * random.uniform(0.8, 1.2))
+                if stop.is_set():
+                    return None
+            try:
+                session = await open_session(url, hello, cafile=cafile)
+            except SessionError as err:
+                if not err.retry:
+                    raise
+                if now() - t0 >= self.give_up_s:
+                    raise SessionError(url, f"gave up reconnecting after {self.give_up_s:g} "
+                                       f"s: {err.reason}") from None
+                delay = min(2.0 * delay, self.max_s)
+                continue
+            self.count += 1
+            welcome = session.welcome
+            what = (f"back in room {hello.room!r}" if welcome.avatar_id is None
+                    else "avatar resumed, still calibrated" if welcome.resumed
+                    else "a new avatar (the server had lost the old one): calibrating again")
+            self.say(f"reconnected after {now() - t0:.1f} s; {what}")
+            return session

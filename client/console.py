@@ -111,9 +111,12 @@ async def report_spectator(spectator: Spectator, status: StatusLine) -> None:
     status.say(f"joined room {room!r} on {url} as a spectator; Ctrl-C stops")
     shown: int | None = None
     waiting_said = -math.inf
+    reconnects = spectator.stats.reconnects
     while True:
         players = len(spectator.latest)
         t = time.monotonic()
+        if spectator.stats.reconnects != reconnects:  # a new session: say the room again
+            reconnects, shown = spectator.stats.reconnects, None
         if players == 0 and t - waiting_said >= WAITING_EVERY_S:
             waiting_said = t
             status.say(f"waiting for players in room {room!r} on {url} "

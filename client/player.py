@@ -22,7 +22,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import cast
 
-from posecast.client.connection import Session, SessionError, make_hello, open_session, stop_task
+from posecast.client.connection import (
+    Reconnect,
+    Session,
+    SessionError,
+    make_hello,
+    open_session,
+    stop_task,
+)
 from posecast.client.sources.base import DeviceSample, PoseSource, now
 from posecast.protocol import (
     Calibrate,
@@ -159,6 +166,7 @@ class PlayerStats:
     clock_rtt: float = math.inf  # best round trip to the server, seconds
     seconds: float = 0.0  # from the first frame to the last
     ended_by: str = ""  # "source", "time", "stop", "cancel" or "server" (it went away)
+    reconnects: int = 0  # sessions opened again after one was lost
 
 
 class Player:
@@ -171,7 +179,7 @@ class Player:
 
     def __init__(self, url: str, room: str, name: str, source: PoseSource,
                  token: str | None = None, ticker: Ticker | None = None,
-                 cafile: Path | None = None) -> None:
+                 cafile: Path | None = None, reconnect: Reconnect | None = None) -> None:
         self.url = url
         self.cafile = cafile  # a wss:// server's private CA (``open_session``)
         # its rate: the server allows that plus slack, not the rate of its fastest player
@@ -183,8 +191,11 @@ class Player:
                         self.ticker.rate_hz, source.rate_hz)
         self.stats = PlayerStats()
         self.session: Session | None = None
+        # with a policy, a lost session is opened again and the avatar resumed
+        self.reconnect = reconnect
         self._seq = 0
         self._recalibrate = False
+        self._t_first: float | None = None  # the first frame's capture: ``seconds`` count
 
     def recalibrate(self) -> None:
         """Send a fresh Calibrate (the source's T-pose now) before the next frame."""
@@ -192,8 +203,36 @@ class Player:
 
     async def run(self, seconds: float | None = None,
                   stop: asyncio.Event | None = None) -> PlayerStats:
-        """Stream until the source ends, ``seconds`` pass, ``stop`` is set or cancelled."""
+        """Stream until the source ends, ``seconds`` pass, ``stop`` is set or cancelled.
+
+        A lost session raises SessionError, or with ``reconnect`` is opened again with
+        the avatar's resume secret: the same avatar, calibrated, keeps streaming (a
+        server that lost it gives a new one, which gets the T-pose again)."""
         session = await open_session(self.url, self.hello, cafile=self.cafile)
+        while True:
+            try:
+                self.stats.ended_by = await self._run_session(session, seconds, stop)
+                return self.stats
+            except SessionError as lost:
+                if self.reconnect is None or not lost.retry:
+                    self.stats.ended_by = "server"
+                    raise
+                resume = self.hello.model_copy(update={"resume": session.welcome.resume})
+                try:
+                    again = await self.reconnect.again(lost, resume, cafile=self.cafile,
+                                                       stop=stop)
+                except SessionError:
+                    self.stats.ended_by = "server"
+                    raise
+                if again is None:
+                    self.stats.ended_by = "stop"
+                    return self.stats
+                session = again
+                self.stats.reconnects += 1
+
+    async def _run_session(self, session: Session, seconds: float | None,
+                           stop: asyncio.Event | None) -> str:
+        """Sync the clock, calibrate unless the avatar was resumed, stream; why it ended."""
         self.session = session
         self.stats.connection_id = session.connection_id
         self.stats.avatar_id = session.avatar_id
@@ -201,20 +240,17 @@ class Player:
         try:
             session.start_clock_sync()
             await session.wait_synced()
-            await self._send_calibration(session)
-            self.stats.ended_by = await self._stream(session, reader, seconds, stop)
+            if not session.welcome.resumed:
+                await self._send_calibration(session)
+            return await self._stream(session, reader, seconds, stop)
         except asyncio.CancelledError:
             self.stats.ended_by = "cancel"
-            raise
-        except SessionError:
-            self.stats.ended_by = "server"
             raise
         finally:
             await stop_task(reader)  # its SessionError, if any, was raised by _stream
             self.stats.clock_offset = session.clock.offset
             self.stats.clock_rtt = session.clock.rtt
             await session.close(self.stats.ended_by)
-        return self.stats
 
     async def _stream(self, session: Session, reader: asyncio.Task[None],
                       seconds: float | None, stop: asyncio.Event | None) -> str:
@@ -222,8 +258,10 @@ class Player:
         reader's SessionError when the server went away)."""
         ended: asyncio.Future[str] = asyncio.get_running_loop().create_future()
         slot = -1
-        deadline = math.inf
-        t_first: float | None = None
+        # counted from the first frame of the first session: a reconnect does not add time
+        t_first = self._t_first
+        deadline = t_first + seconds if t_first is not None and seconds is not None \
+            else math.inf
 
         def on_slot(k: int) -> None:
             nonlocal slot, deadline, t_first
@@ -246,7 +284,7 @@ class Player:
                         ended.set_result("source")
                     else:
                         if t_first is None:
-                            t_first = sample.t_capture
+                            t_first = self._t_first = sample.t_capture
                             deadline = t_first + seconds if seconds is not None else math.inf
                         self.stats.seconds = sample.t_capture - t_first
             except Exception as exc:  # the reader's SessionError, a source's error

@@ -18,7 +18,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from posecast.client.connection import Session, make_hello, open_session, stop_task
+from posecast.client.connection import (
+    Reconnect,
+    Session,
+    SessionError,
+    make_hello,
+    open_session,
+    stop_task,
+)
 from posecast.client.latency import LatencyRecorder
 from posecast.client.sources.base import now
 from posecast.protocol import (
@@ -63,6 +70,7 @@ class SpectatorStats:
     clock_offset: float = 0.0  # server - local, seconds, at the end
     clock_rtt: float = math.inf  # best round trip, seconds
     seconds: float = 0.0  # connected time
+    reconnects: int = 0  # sessions opened again after one was lost
 
 
 class Spectator:
@@ -73,7 +81,8 @@ class Spectator:
     """
 
     def __init__(self, url: str, room: str, name: str, max_rate_hz: float | None = None,
-                 token: str | None = None, cafile: Path | None = None) -> None:
+                 token: str | None = None, cafile: Path | None = None,
+                 reconnect: Reconnect | None = None) -> None:
         self.url = url
         self.cafile = cafile  # a wss:// server's private CA (``open_session``)
         self.hello = make_hello(url, "spectator", room, name, token, max_rate_hz)
@@ -81,15 +90,37 @@ class Spectator:
         self.latest: dict[int, ReceivedFrame] = {}
         self.stats = SpectatorStats()
         self.session: Session | None = None
+        self.reconnect = reconnect  # with a policy, a lost session is opened again
 
     async def run(self, seconds: float | None = None,
                   stop: asyncio.Event | None = None) -> SpectatorStats:
         """Receive until ``seconds`` pass or ``stop`` is set (neither: until cancelled).
 
-        Raises SessionError if the server cannot be reached, refuses, or goes away;
-        ``stats`` keeps what was received up to then.
+        Raises SessionError if the server cannot be reached, refuses, or goes away
+        (with ``reconnect``: once it gives up); ``stats`` keeps what was received.
         """
         session = await open_session(self.url, self.hello, cafile=self.cafile)
+        deadline = None if seconds is None else now() + seconds
+        while True:
+            try:
+                await self._run_session(session, None if deadline is None
+                                        else max(deadline - now(), 0.0), stop)
+                return self.stats
+            except SessionError as lost:
+                if self.reconnect is None or not lost.retry:
+                    raise
+                again = await self.reconnect.again(lost, self.hello, cafile=self.cafile,
+                                                   stop=stop)
+                if again is None:
+                    return self.stats
+                session = again
+                self.stats.reconnects += 1
+                # the room comes again from the new session's roster: ids from a
+                # restarted server mean other avatars
+                self.forget_room()
+
+    async def _run_session(self, session: Session, seconds: float | None,
+                           stop: asyncio.Event | None) -> None:
         self.session = session
         self.stats.connection_id = session.connection_id
         t_start = now()
@@ -99,12 +130,16 @@ class Spectator:
             await _until(reader, seconds, stop)
         finally:
             await stop_task(reader)  # its SessionError, if any, was raised by _until
-            self.stats.seconds = now() - t_start
-            self.stats.bytes_received = session.bytes_received
+            self.stats.seconds += now() - t_start
+            self.stats.bytes_received += session.bytes_received
             self.stats.clock_offset = session.clock.offset
             self.stats.clock_rtt = session.clock.rtt
             await session.close()
-        return self.stats
+
+    def forget_room(self) -> None:
+        """Drop every avatar: a new session sends the room's roster again."""
+        self.on_roster(AvatarRoster(avatars=(), removed=tuple(self.roster)))
+        self.latest.clear()
 
     async def catch_up(self) -> None:
         """Take every message that has arrived before drawing (``Session.catch_up``)."""
