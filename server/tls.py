@@ -8,10 +8,13 @@ accepted (1.0 and 1.1 are deprecated by RFC 8996).
 
 from __future__ import annotations
 
+import asyncio
+import gc
 import re
 import ssl
 from collections.abc import Sequence
 from pathlib import Path
+from typing import cast
 
 from websockets.typing import Origin
 
@@ -88,3 +91,21 @@ def allowed_origins(origins: Sequence[str] | None) -> list[Origin | None] | None
     if not origins:
         return None
     return [*map(Origin, origins), None]
+
+
+def tcp_under_tls(transport: asyncio.BaseTransport) -> asyncio.WriteTransport | None:
+    """The TCP transport under a TLS transport, whose write buffer neither asyncio nor
+    uvloop lets one size (None where it cannot be found). Called once per connection."""
+    layer = getattr(transport, "_ssl_protocol", None)  # asyncio's TLS layer
+    if layer is None:  # uvloop's is compiled: its fields are reachable as gc referents
+        layer = next((r for r in gc.get_referents(transport)
+                      if type(r).__name__ == "SSLProtocol"), None)
+    if layer is None:
+        return None
+    below = getattr(layer, "_transport", None)
+    if below is None:
+        below = next((r for r in gc.get_referents(layer)
+                      if type(r).__name__ == "TCPTransport"), None)
+    if below is None or below is transport or not hasattr(below, "set_write_buffer_limits"):
+        return None
+    return cast(asyncio.WriteTransport, below)
