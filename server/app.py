@@ -564,6 +564,8 @@ async def run_server(host: str, port: int, session: Session | None = None,
                      origins=allowed_origins(origins)) as server:
         bound = next(iter(server.sockets)).getsockname()[1]
         log.info("posecast server on %s://%s:%d", "ws" if tls is None else "wss", host, bound)
+        log.info("health and metrics on the same port: %s://%s:%d/healthz and /metrics",
+                 "http" if tls is None else "https", host, bound)
         if ready is not None:
             ready(bound)
         poller = (loop.create_task(session.busy.run(stop))
