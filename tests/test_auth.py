@@ -24,7 +24,7 @@ from websockets.asyncio.client import connect
 from posecast.client.arguments import duration
 from posecast.client.builtin import builtin_motion_path
 from posecast.client.cli import main
-from posecast.client.connection import SessionError, make_hello, open_session
+from posecast.client.connection import Reconnect, SessionError, make_hello, open_session
 from posecast.client.player import Player
 from posecast.client.sources import open_source
 from posecast.client.spectator import Spectator
@@ -296,6 +296,41 @@ def test_a_guessed_token_never_reaches_a_players_avatar(session: Session) -> Non
             assert owner.ws.close_code is None  # not kicked
 
     run(session, test)
+
+
+def test_a_reconnect_is_a_join_its_token_must_still_be_valid(session: Session) -> None:
+    """A player whose connection is lost comes back with its token; once that token has
+    expired the server refuses it, and the player stops with the reason, not retrying."""
+    clock = [time.time()]
+    expiring = Session(session.rig, reconnect_grace=30.0,
+                       tokens=JoinTokens(SECRET, leeway_s=0.0, clock=lambda: clock[0]))
+    tokens = JoinTokens(SECRET)
+    said: list[str] = []
+
+    async def test(url: str) -> None:
+        player = Player(url, "lobby", "ana", open_source(CLIP, loop=True),
+                        token=tokens.mint("lobby", "player", 60, now=clock[0]),
+                        reconnect=Reconnect(say=said.append, first_s=0.05))
+        playing = asyncio.create_task(player.run())
+        sent = 0
+        for expired in (False, True):
+            while player.stats.frames_sent < sent + 10 or not expiring.rooms:
+                assert not playing.done()
+                await asyncio.sleep(0.05)
+            clock[0] += 120.0 if expired else 30.0  # past the token's minute, or within
+            (owner,) = expiring._owners.values()
+            await owner.close(1012, "restarting")  # a drop the player reconnects after
+            if not expired:
+                while player.stats.reconnects == 0:
+                    assert not playing.done()
+                    await asyncio.sleep(0.05)
+                sent = player.stats.frames_sent  # and it streams again in the new session
+        with pytest.raises(SessionError, match="auth_failed: the join token expired at"):
+            await playing
+
+    run(expiring, test)
+    assert said[0].startswith("connection lost") and "reconnected after" in said[1], said
+    assert expiring.metrics.rejected[ErrorCode.AUTH_FAILED] >= 1
 
 
 def test_an_open_server_says_so_and_warns_beyond_loopback(
