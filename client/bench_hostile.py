@@ -328,8 +328,12 @@ class _Watcher(Spectator):
         super().on_roster(roster)
         if self.avatar_id in roster.removed:  # a previous run's bystander
             self.avatar_id = None
+        # the newest bystander: a previous run's (killed, so kept for the reconnect
+        # grace) holds the name, and this one's is then "bystander 2" (unique names)
         for info in roster.avatars:
-            if info.display_name == BYSTANDER_NAME:
+            name = info.display_name
+            if (name == BYSTANDER_NAME or name.startswith(BYSTANDER_NAME + " ")) and (
+                    self.avatar_id is None or info.avatar_id > self.avatar_id):
                 self.avatar_id = info.avatar_id
 
     def on_batch(self, batch: AvatarBatch, t_local: float, clock: ClockEstimator) -> None:
