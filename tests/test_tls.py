@@ -404,7 +404,8 @@ def test_a_slow_viewer_over_wss_is_not_further_behind(session: Session, certs: C
         scheme = "wss" if secure else "ws"
         viewer = await connect(f"{scheme}://localhost:{port}", sock=sock,
                                ssl=_trusting(certs) if secure else None,
-                               compression=None, max_size=None, max_queue=1)
+                               compression=None, max_size=None, max_queue=1,
+                               close_timeout=1.0)  # its close waits behind its backlog
         if secure:  # the client's TLS layer reads 256 KiB ahead unless told: this test is
             # about what the server holds back, as on a slow link
             viewer.transport.set_read_buffer_limits(high=4096)
