@@ -11,6 +11,8 @@ import shutil
 import socket
 import ssl
 import subprocess
+import threading
+import time
 from collections.abc import AsyncIterator, Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -441,3 +443,48 @@ def test_a_slow_viewer_over_wss_is_not_further_behind(session: Session, certs: C
           f"behind by (median / max): ws:// {np.median(plain):.2f} s / {max(plain):.2f} s, "
           f"wss:// {np.median(secure):.2f} s / {max(secure):.2f} s")
     assert max(secure) < 1.0, [round(x, 3) for x in secure]
+
+
+def test_a_viewer_that_draws_slowly_over_wss_shows_poses_a_draw_old(session: Session,
+                                                                   certs: Certs) -> None:
+    """posecast's own viewer takes everything that arrived before each draw
+    (``Session.catch_up``); the bytes the client's TLS layer reads ahead are taken too:
+    drawing every 75 ms beside 8 players, the newest pose drawn is ~5 ms old (median),
+    as over ws://, not the backlog of its buffers."""
+    from posecast.server.clock import now
+
+    lags: list[float] = []
+    stop = threading.Event()
+
+    def slow_viewer(url: str) -> None:  # its own thread and loop, like a viewer process
+        async def view() -> None:
+            spectator = Spectator(url, "demo", "slow viewer", cafile=certs.ca)
+            receiving = asyncio.create_task(spectator.run())
+            while not stop.is_set():
+                newest = [f.batch.t_capture[f.row] for f in spectator.latest.values()]
+                if newest:
+                    lags.append(now() - float(max(newest)))
+                time.sleep(0.075)  # the draw: nothing else runs in this loop meanwhile
+                await spectator.catch_up()
+            receiving.cancel()
+            with contextlib.suppress(asyncio.CancelledError, SessionError):
+                await receiving
+        asyncio.run(view())
+
+    async def main() -> None:
+        async with tls_serving(session, certs) as port:
+            url = f"wss://localhost:{port}"
+            viewer = threading.Thread(target=slow_viewer, args=(url,))
+            viewer.start()
+            try:
+                await _players(url, 8, 4.0, certs.ca)
+            finally:
+                stop.set()
+                await asyncio.to_thread(viewer.join)
+
+    asyncio.run(main())
+    assert len(lags) > 20
+    settled = lags[len(lags) // 3:]
+    print(f"viewer drawing every 75 ms over wss://, 8 players: newest pose drawn "
+          f"{np.median(settled) * 1000:.0f} ms old (median), {max(settled) * 1000:.0f} ms max")
+    assert max(settled) < 0.2, [round(x, 3) for x in settled]
