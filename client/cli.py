@@ -206,7 +206,8 @@ def _parser() -> argparse.ArgumentParser:
     vw.add_argument("--size", type=arg.size, default="1280x720", help="WIDTHxHEIGHT in pixels")
     vw.add_argument("--fps", type=arg.positive_float, default=30.0,
                     help="frames drawn per second")
-    vw.add_argument("--mode", choices=("interpolate", "zero-buffer"), default="interpolate",
+    vw.add_argument("--mode", choices=("interpolate", "zero-buffer", "predict"),
+                    default="interpolate",
                     help="interpolate: render slightly behind, SLERP between frames; "
                          "zero-buffer: the newest frame, least latency")
     vw.add_argument("--view", choices=("orbit", "first-person", "mirror"), default="orbit",

@@ -60,7 +60,7 @@ def avatar_pixels(path: Path) -> float:
     return float((colourful & (np.abs(img - bg).max(axis=2) > 8)).mean())
 
 
-@pytest.mark.parametrize("mode", [Mode.INTERPOLATE, Mode.LATEST])
+@pytest.mark.parametrize("mode", [Mode.INTERPOLATE, Mode.LATEST, Mode.PREDICT])
 def test_headless_viewer_renders_the_moving_avatar(egl: None, session: Session,
                                                    tmp_path: Path, mode: Mode) -> None:
     async def test(url: str) -> HeadlessStats:

@@ -23,6 +23,10 @@ How far behind, per avatar, from its own arrivals (no clock sync needed):
   extrapolation: a wrong guess at a limb looks worse than a brief pause); underruns are
   counted.
 
+In ``Mode.PREDICT`` each avatar's newest frame is carried forward by its capture-to-render
+latency (present time on the server clock - its capture time, through the connection's
+clock offset) with ``solver.prediction``: the pose drawn stands for the present instant.
+
 ``Sampled.t_capture`` is the capture instant the drawn pose stands for, so
 present time - t_capture is the honest capture-to-render latency in either mode.
 Pure: no GL, no sockets.
@@ -32,12 +36,14 @@ from __future__ import annotations
 
 import enum
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
 from posecast.protocol import AvatarFrame
+from posecast.solver import prediction
 from posecast.solver import rotations as R
 
 Array = NDArray[np.float64]
@@ -53,6 +59,7 @@ FALLBACK_INTERVAL = 1.0 / 90.0  # before two frames have arrived: a headset's ra
 class Mode(enum.Enum):
     INTERPOLATE = "interpolate"
     LATEST = "zero-buffer"
+    PREDICT = "predict"
 
 
 @dataclass(frozen=True)
@@ -162,13 +169,39 @@ class SnapshotBuffer:
         """The capture instant (server clock) to show at local time ``now``."""
         return now - self.jitter.base - self.delay
 
-    def sample(self, now: float, mode: Mode = Mode.INTERPOLATE) -> Sampled | None:
+    def sample(self, now: float, mode: Mode = Mode.INTERPOLATE,
+               server_now: float | None = None,
+               predictor: prediction.PredictorParams = prediction.DEFAULT) -> Sampled | None:
+        """``server_now``: ``now`` on the server clock (PREDICT mode; when unknown, the
+        least transit stands in for the clock offset and the fastest delivery)."""
         newest = self.newest
         if newest is None:
             return None
         if mode is Mode.LATEST:
             return Sampled(newest.rotations, newest.root, newest.t_capture, newest, False)
+        if mode is Mode.PREDICT:
+            return self.predict_at(now - self.jitter.base if server_now is None
+                                   else server_now, predictor)
         return self.sample_at(self.target(now))
+
+    def predict_at(self, t: float, predictor: prediction.PredictorParams = prediction.DEFAULT
+                   ) -> Sampled | None:
+        """The newest frame carried forward to capture instant ``t`` (server clock)."""
+        frames = self.frames
+        if not frames:
+            return None
+        newest = frames[-1]
+        if len(frames) < 2:  # no motion known yet: the frame as it is
+            return Sampled(newest.rotations, newest.root, newest.t_capture, newest, False)
+        # the frames the predictor's window reaches, and one spare for an uneven spacing
+        n = min(len(frames), prediction.lags_needed(predictor, 1.0 / self.jitter.interval) + 2)
+        recent = [frames[i] for i in range(len(frames) - n, len(frames))]
+        times = np.array([f.t_capture for f in recent])
+        rot, root = prediction.predict_latest(
+            times, np.stack([f.rotations for f in recent]),
+            np.stack([f.root for f in recent])[:, None], t, predictor)
+        shown = min(max(t, newest.t_capture), newest.t_capture + predictor.max_horizon_s)
+        return Sampled(rot, root[0], shown, newest, False)
 
     def sample_at(self, t: float) -> Sampled | None:
         """The pose at capture instant ``t``: interpolated between the bracketing frames,
@@ -202,8 +235,10 @@ class Interpolator:
     def __init__(self, mode: Mode = Mode.INTERPOLATE, capacity: int = DEFAULT_CAPACITY,
                  window: int = DEFAULT_WINDOW, k: float = DEFAULT_K,
                  min_delay: float = DEFAULT_MIN_DELAY,
-                 max_delay: float = DEFAULT_MAX_DELAY) -> None:
+                 max_delay: float = DEFAULT_MAX_DELAY,
+                 predictor: prediction.PredictorParams = prediction.DEFAULT) -> None:
         self.mode = mode
+        self.predictor = predictor
         self._settings = (capacity, window, k, min_delay, max_delay)
         self.buffers: dict[int, SnapshotBuffer] = {}
 
@@ -219,20 +254,26 @@ class Interpolator:
     def remove(self, avatar_id: int) -> None:
         self.buffers.pop(avatar_id, None)
 
-    def sample(self, now: float) -> dict[int, Sampled]:
+    def sample(self, now: float, to_server: Callable[[float], float] | None = None
+               ) -> dict[int, Sampled]:
+        """Every avatar at local time ``now``; ``to_server`` converts a local time to the
+        server clock (the connection's offset), which PREDICT mode uses when given."""
+        server_now = to_server(now) if to_server is not None else None
         out = {}
         for avatar_id, buf in self.buffers.items():
-            s = buf.sample(now, self.mode)
+            s = buf.sample(now, self.mode, server_now, self.predictor)
             if s is not None:
                 out[avatar_id] = s
         return out
 
     def delays(self) -> dict[int, float]:
-        """Each avatar's current playout delay (0 in zero-buffer mode), seconds."""
-        if self.mode is Mode.LATEST:
+        """Each avatar's current playout delay (0 in zero-buffer and predict modes), seconds."""
+        if self.mode is not Mode.INTERPOLATE:
             return dict.fromkeys(self.buffers, 0.0)
         return {a: b.delay for a, b in self.buffers.items()}
 
     def toggle(self) -> Mode:
-        self.mode = Mode.LATEST if self.mode is Mode.INTERPOLATE else Mode.INTERPOLATE
+        """The next mode: interpolate, zero-buffer, predict, and round again."""
+        order = [Mode.INTERPOLATE, Mode.LATEST, Mode.PREDICT]
+        self.mode = order[(order.index(self.mode) + 1) % len(order)]
         return self.mode

@@ -115,7 +115,9 @@ class SpectatorScene:
     def frame(self, now: float) -> SceneFrame:
         """Poses of every drawable avatar at local time ``now`` (``client.sources.now``)."""
         self._sync()
-        sampled = self.interpolator.sample(now)
+        clock = self.clock  # predict mode carries poses to now on the server clock
+        sampled = self.interpolator.sample(
+            now, clock.to_server if clock is not None and clock.synced else None)
         ids, draws, samples = [], [], []
         for avatar_id in sorted(sampled):
             fitted = self._fitted.get(avatar_id)

@@ -12,9 +12,9 @@ raises ``NoDisplayError`` with one line pointing to ``--headless``, before any w
 toolkit is imported.
 
 Controls: drag with the left button to orbit, scroll to zoom, 1/2/3 orbit / first-person
-/ mirror view, Tab the next player (first-person and mirror), I interpolation or
-zero-buffer, F frame every avatar again, P save a screenshot (posecast_<time>.png in the
-working directory), Esc or Q to quit.
+/ mirror view, Tab the next player (first-person and mirror), I interpolation,
+zero-buffer or predict (in turn), F frame every avatar again, P save a screenshot
+(posecast_<time>.png in the working directory), Esc or Q to quit.
 """
 
 from __future__ import annotations
