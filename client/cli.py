@@ -209,7 +209,8 @@ def _parser() -> argparse.ArgumentParser:
     vw.add_argument("--mode", choices=("interpolate", "zero-buffer", "predict"),
                     default="interpolate",
                     help="interpolate: render slightly behind, SLERP between frames; "
-                         "zero-buffer: the newest frame, least latency")
+                         "zero-buffer: the newest frame, least latency; predict: the "
+                         "newest frame carried forward by its capture-to-render latency")
     vw.add_argument("--view", choices=("orbit", "first-person", "mirror"), default="orbit",
                     help="the camera: around everyone, at a player's eyes, or facing them")
     vw.add_argument("--screenshot", type=arg.out_file, default=None,
