@@ -272,3 +272,18 @@ def source(text: str) -> str:
     if not Path(path).is_file():
         raise argparse.ArgumentTypeError(f"no such file: {path!r}")
     return text
+
+
+def box(text: str) -> tuple[int, int, int, int]:
+    """A box in a video frame for latency-video: X,Y,W,H pixels, (X, Y) its top-left."""
+    parts = text.split(",")
+    try:
+        x, y, w, h = (int(v) for v in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"must be X,Y,W,H in whole pixels (top-left corner, width, height), "
+            f"got {text!r}") from None
+    if x < 0 or y < 0 or w < 1 or h < 1:
+        raise argparse.ArgumentTypeError(
+            f"must have X, Y of 0 or more and W, H of 1 or more, got {text!r}")
+    return x, y, w, h

@@ -262,6 +262,32 @@ def _parser() -> argparse.ArgumentParser:
                          "thread spins on the clients' core and takes part of each batch)")
     dm.add_argument("--json", action="store_true", help="print one JSON document")
 
+    lv = sub.add_parser("latency-video", help="end-to-end latency from a video of the "
+                        "tracker and the screen (the paper's section 3.2)",
+                        description="Measure end-to-end latency from a video that films the "
+                        "tracker swinging and the screen showing its avatar (view --marker "
+                        "draws a marker to follow): both boxes are followed with OpenCV, "
+                        "the turns of their horizontal motion paired, and the mean frame "
+                        "difference turned into ms; a cross-correlation estimate is shown "
+                        "beside it. docs/latency-video.md says how to film.")
+    lv.add_argument("video", type=arg.existing_file, metavar="VIDEO",
+                    help="the video (a phone's slow motion, 240 fps, is best)")
+    lv.add_argument("--tracker-box", type=arg.box, default=None, metavar="X,Y,W,H",
+                    help="the real tracker (or a marker on it) in the first frame, pixels")
+    lv.add_argument("--avatar-box", type=arg.box, default=None, metavar="X,Y,W,H",
+                    help="the avatar's marker on the screen in the first frame, pixels")
+    lv.add_argument("--select", action="store_true",
+                    help="draw both boxes on the first frame (needs a display and an "
+                         "OpenCV with a GUI)")
+    lv.add_argument("--tracker", choices=("kcf", "csrt"), default="kcf",
+                    help="OpenCV's tracker: KCF as in the paper, CSRT slower and steadier")
+    lv.add_argument("--fps", type=arg.positive_float, default=None,
+                    help="frames per second of the filming (default: the file's; give it "
+                         "for a slow-motion video saved at a playback rate)")
+    lv.add_argument("--plot", type=arg.out_file, default=None, metavar="FILE.png",
+                    help="draw both traces, their turns and how they were paired")
+    lv.add_argument("--json", action="store_true", help="print one JSON document")
+
     bench = sub.add_parser("bench", help="measure speed")
     bsub = bench.add_subparsers(dest="bench", metavar="WHAT")
     bs = bsub.add_parser("solver", help="microseconds per avatar-frame at several batch sizes")
@@ -386,6 +412,12 @@ def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
                         args.smoothing, args.json)
     if args.command == "token":
         return _token(args)
+    if args.command == "latency-video":
+        from posecast.client.latency_video import run_latency_video
+
+        return run_latency_video(args.video, args.tracker_box, args.avatar_box,
+                                 tracker=args.tracker, select=args.select, fps=args.fps,
+                                 plot=args.plot, as_json=args.json)
     if args.command == "serve":
         return _serve(args)
     if args.command == "play":
