@@ -22,6 +22,7 @@ from posecast.client.jit import CompileNotice, warm_kernels
 from posecast.protocol.validation import ROOM_NAME_RULE
 from posecast.server.limits import ServerLimits
 from posecast.solver.ik import DEFAULT_SOLVER, SOLVERS, SolverOptions
+from posecast.solver.motion import VIVE_DEVICES  # view --marker's joints
 
 if TYPE_CHECKING:
     import ssl
@@ -225,6 +226,12 @@ def _parser() -> argparse.ArgumentParser:
                     help="ask the server for at most this many batches per second")
     vw.add_argument("--json", action="store_true",
                     help="print the summary as one JSON document")
+    vw.add_argument("--marker", nargs="?", const="right_hand", default=None,
+                    choices=VIVE_DEVICES, metavar="JOINT",
+                    help="draw a high-contrast marker on this joint of every avatar, for "
+                         "posecast latency-video to follow in a video of tracker and "
+                         "screen (alone: right_hand; JOINT: " + ", ".join(VIVE_DEVICES)
+                         + ")")
 
     tk = sub.add_parser("token", help="print a join token for a server with a secret",
                         description="Print a join token (a JWT signed with the server's "
@@ -523,13 +530,13 @@ async def _view_live(args: argparse.Namespace, watched: list[Spectator]
                                height, interval_ms=1000.0 / args.fps, mode=mode, view=view,
                                max_rate_hz=args.max_rate, token=args.token,
                                cafile=args.cafile, stop=stop,
-                               on_spectator=on_spectator)
+                               on_spectator=on_spectator, marker=args.marker)
            if args.headless else
            run_window_viewer(args.server, args.room, width, height, fps=args.fps, mode=mode,
                              view=view, max_rate_hz=args.max_rate, frames=args.frames,
                              screenshot=args.screenshot, token=args.token,
                              cafile=args.cafile, stop=stop,
-                             on_spectator=on_spectator))
+                             on_spectator=on_spectator, marker=args.marker))
     try:
         return await run_until_signal(run, stop)
     finally:

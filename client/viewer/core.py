@@ -25,6 +25,7 @@ import numpy as np
 from posecast.client.latency import LatencyRecorder
 from posecast.client.viewer.camera import Camera, OrbitCamera
 from posecast.client.viewer.interpolation import Mode
+from posecast.client.viewer.marker import MARKER_JOINTS, MarkerOverlay, marker_centres
 from posecast.client.viewer.overlay import TextItem, TextOverlay, hud_lines, label_items
 from posecast.client.viewer.renderer import PosedScene, Renderer, avatar_color
 from posecast.client.viewer.scene import (
@@ -75,7 +76,7 @@ class Viewer:
     def __init__(self, renderer: Renderer, scene: SpectatorScene,
                  orbit: OrbitCamera | None = None, view: ViewMode = ViewMode.ORBIT,
                  player: int | None = None, labels: bool = True, hud: bool = True,
-                 auto_frame: bool = True) -> None:
+                 auto_frame: bool = True, marker: str | None = None) -> None:
         self.renderer = renderer
         self.scene = scene
         self.orbit = orbit or OrbitCamera()
@@ -84,6 +85,10 @@ class Viewer:
         self.labels, self.hud = labels, hud
         self.auto_frame = auto_frame  # keep every avatar in the orbit camera's view
         self.overlay = TextOverlay(renderer.ctx) if (labels or hud) else None
+        # view --marker: a pattern on this joint (mesh order) for latency-video to follow
+        self.marker = (None if marker is None else
+                       renderer.mesh.skeleton.index(MARKER_JOINTS.get(marker, marker)))
+        self.markers = MarkerOverlay(renderer.ctx) if marker is not None else None
         self.stats = ViewerStats()
         self._presents: deque[float] = deque(maxlen=240)
         self._hud_text = ""
@@ -126,6 +131,9 @@ class Viewer:
             if self.hud:
                 items.append(TextItem(self._hud(now, len(frame)), 10, 10))
             self.overlay.draw(items, r.width, r.height)
+        if self.markers is not None and self.marker is not None:
+            self.markers.draw(marker_centres(posed, self.marker, camera, r.width, r.height),
+                              r.width, r.height)
         return DrawnFrame(frame, posed, camera, now)
 
     def _follow(self, posed: PosedScene) -> None:
@@ -187,6 +195,8 @@ class Viewer:
     def release(self) -> None:
         if self.overlay is not None:
             self.overlay.release()
+        if self.markers is not None:
+            self.markers.release()
 
 
 def _recent_summary(recorders: list[LatencyRecorder]) -> Mapping[str, Mapping[str, float]]:

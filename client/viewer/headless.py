@@ -88,16 +88,18 @@ async def render_spectator(spectator: Spectator, out_dir: str | Path | None, *,
                            view: ViewMode = ViewMode.ORBIT, player: int | None = None,
                            orbit: OrbitCamera | None = None, renderer: Renderer | None = None,
                            wait_for_avatars: bool = True,
-                           timeout: float | None = None) -> HeadlessStats:
+                           timeout: float | None = None,
+                           marker: str | None = None) -> HeadlessStats:
     """Render ``spectator``'s room every ``interval_ms`` into ``out_dir`` (None: render
     and measure, write nothing) until ``frames`` frames are done, ``stop`` is set or
     ``timeout`` seconds pass. With ``wait_for_avatars`` a frame with no avatar is neither
-    written nor counted. Raises GLUnavailableError without a usable EGL."""
+    written nor counted. ``marker``: a joint name for view --marker (marker.py). Raises
+    GLUnavailableError without a usable EGL."""
     own_renderer = renderer is None
     r = renderer or Renderer.standalone(width, height)
     scene = SpectatorScene(spectator)
     scene.interpolator.mode = mode
-    viewer = Viewer(r, scene, orbit=orbit, view=view, player=player)
+    viewer = Viewer(r, scene, orbit=orbit, view=view, player=player, marker=marker)
     viewer.warm_up()
     writer = _PngWriter(Path(out_dir) if out_dir is not None else None)
     stats = HeadlessStats()
@@ -149,7 +151,7 @@ async def run_headless_viewer(url: str, room: str, frames: int | None,
                               cafile: Path | None = None, timeout: float | None = None,
                               stop: asyncio.Event | None = None,
                               on_spectator: Callable[[Spectator], None] | None = None,
-                              ) -> HeadlessStats:
+                              marker: str | None = None) -> HeadlessStats:
     """Join ``room`` at ``url`` as a spectator and render ``frames`` frames (None: until
     ``stop`` or ``timeout``) to PNGs in ``out_dir``; see ``render_spectator``.
     ``on_spectator`` gets the spectator before it connects (the CLI reports on it).
@@ -174,7 +176,7 @@ async def run_headless_viewer(url: str, room: str, frames: int | None,
         stats = await render_spectator(spectator, out_dir, frames=frames,
                                        interval_ms=interval_ms, stop=done, width=width,
                                        height=height, mode=mode, view=view, player=player,
-                                       renderer=renderer, timeout=timeout)
+                                       renderer=renderer, timeout=timeout, marker=marker)
     finally:
         done.set()
         if relay is not None:

@@ -162,13 +162,14 @@ class Window:
     async def run(self, scene: SpectatorScene, fps: float = DEFAULT_FPS,
                   stop: asyncio.Event | None = None, view: ViewMode = ViewMode.ORBIT,
                   frames: int | None = None,
-                  screenshot: str | Path | None = None) -> ViewerStats:
+                  screenshot: str | Path | None = None,
+                  marker: str | None = None) -> ViewerStats:
         """Draw ``scene`` at up to ``fps`` until the window closes, ``stop`` is set or
         ``frames`` frames were shown; ``screenshot``: save the last of ``frames`` there."""
         glfw = self.glfw
         w, h = self.framebuffer_size()
         renderer = Renderer(self.ctx, w, h, target=self.ctx.detect_framebuffer())
-        viewer = self.viewer = Viewer(renderer, scene, view=view)
+        viewer = self.viewer = Viewer(renderer, scene, view=view, marker=marker)
         viewer.warm_up()
         interval = 1.0 / fps
         next_t = now()
@@ -210,7 +211,7 @@ async def run_window_viewer(url: str, room: str, width: int = 1280, height: int 
                             screenshot: str | Path | None = None,
                             stop: asyncio.Event | None = None,
                             on_spectator: Callable[[Spectator], None] | None = None,
-                            ) -> ViewerStats:
+                            marker: str | None = None) -> ViewerStats:
     """``posecast view``: a window on ``room`` at ``url`` until it is closed, ``stop``
     is set, or ``frames`` frames were shown (``screenshot`` saves the last one).
     ``on_spectator`` gets the spectator before it connects (the CLI reports on it).
@@ -232,7 +233,7 @@ async def run_window_viewer(url: str, room: str, width: int = 1280, height: int 
         relay.add_done_callback(lambda _: done.set())
     try:
         stats = await window.run(SpectatorScene(spectator), fps, stop=done, view=view,
-                                 frames=frames, screenshot=screenshot)
+                                 frames=frames, screenshot=screenshot, marker=marker)
     finally:
         done.set()
         if relay is not None:
