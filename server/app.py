@@ -264,12 +264,12 @@ class Session:
             limits.address_calibrations_per_s, limits.address_calibration_burst))
         if isinstance(ws, ArrivalStamps):
             ws.fast_path = functools.partial(self._tracker_frame_now, room, avatar, frames)
-        await ws.send(encode(Welcome(protocol_version=PROTOCOL_VERSION,
-                                     connection_id=conn_id, avatar_id=avatar.avatar_id,
-                                     server_time=now(), resume=avatar.resume,
-                                     resumed=resumed, display_name=avatar.display_name)))
         said_bye = False
-        try:
+        try:  # the welcome too: a client gone right after its hello still leaves its avatar
+            await ws.send(encode(Welcome(protocol_version=PROTOCOL_VERSION,
+                                         connection_id=conn_id, avatar_id=avatar.avatar_id,
+                                         server_time=now(), resume=avatar.resume,
+                                         resumed=resumed, display_name=avatar.display_name)))
             async for data in ws:
                 t_received = arrival_time(ws, now)
                 try:
@@ -410,11 +410,15 @@ class Session:
 
         outbox: Outbox[Delivery] = Outbox(send, hello.max_rate_hz)
         spectator = Spectator(outbox, send_bytes, connection=ws)
-        await ws.send(encode(Welcome(protocol_version=PROTOCOL_VERSION, connection_id=conn_id,
-                                     avatar_id=None, server_time=now())))
-        for part in room.roster_messages(self.limits.roster_avatars_per_message,
-                                         self.limits.roster_message_bytes):
-            await ws.send(part)
+        try:
+            await ws.send(encode(Welcome(protocol_version=PROTOCOL_VERSION,
+                                         connection_id=conn_id, avatar_id=None,
+                                         server_time=now())))
+            for part in room.roster_messages(self.limits.roster_avatars_per_message,
+                                             self.limits.roster_message_bytes):
+                await ws.send(part)
+        except ConnectionClosed:  # gone right after its hello: nothing to undo yet
+            return
         room.spectators[conn_id] = spectator
         spectator.task = asyncio.get_running_loop().create_task(outbox.run())
         try:

@@ -5,13 +5,24 @@ says goodbye leaves at once while a dropped one is waited for. Real sockets on 1
 from __future__ import annotations
 
 import asyncio
+import logging
 from collections.abc import Awaitable, Callable
 
 import pytest
 from conftest import serving
+from websockets.asyncio.client import connect
 from test_server import calibration, joined, receive, receive_type, tracker
 
-from posecast.protocol import AvatarBatch, AvatarRoster, Error, Leave, Welcome, encode
+from posecast.protocol import (
+    PROTOCOL_VERSION,
+    AvatarBatch,
+    AvatarRoster,
+    Error,
+    Hello,
+    Leave,
+    Welcome,
+    encode,
+)
 from posecast.server.app import Session
 from posecast.solver.motion import ViveRecording
 
@@ -140,3 +151,26 @@ def test_a_player_that_reconnects_takes_over_from_its_old_connection(
             assert old.close_code == 1000 and "reconnected" in (old.close_reason or "")
 
     run(test, session)
+
+
+def test_clients_gone_right_after_their_hello_leave_nothing_behind(
+        session: Session, caplog: pytest.LogCaptureFixture) -> None:
+    """A hello and a close in one go: the welcome then meets a closed connection. Before,
+    that raised out of the handler (a traceback) and left the player's avatar connected
+    for good."""
+    async def test(url: str) -> None:
+        for role in ("player", "spectator") * 10:
+            ws = await connect(url, compression=None)
+            hello = Hello(protocol_version=PROTOCOL_VERSION, role=role, room="gone",
+                          display_name=role)
+            await asyncio.gather(ws.send(encode(hello)), ws.close())
+        room = session.rooms.get("gone")
+        t_end = asyncio.get_running_loop().time() + TIMEOUT
+        while room is not None and any(a.connected for a in room.avatars.values()):
+            assert asyncio.get_running_loop().time() < t_end, "an avatar stays connected"
+            await asyncio.sleep(0.05)
+        assert room is None or not room.spectators
+
+    with caplog.at_level(logging.ERROR):
+        run(test, session)
+    assert not [r for r in caplog.records if r.exc_info], caplog.text
