@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import NoReturn
 from urllib.parse import urlsplit
 
+from posecast.client.network import NetworkSpec, parse_network_spec
 from posecast.client.tls import CAFileError, client_tls_context
 from posecast.protocol.validation import (
     MAX_NAME_CHARS,
@@ -223,6 +224,14 @@ def duration(text: str) -> float:
         raise argparse.ArgumentTypeError(
             f"must be above 0 and at most 365d, got {text!r}")
     return value
+
+
+def network(text: str) -> NetworkSpec:
+    """An emulated link for demo --network: 40ms+-10ms[,stall=200ms/5s][,seed=N]."""
+    try:
+        return parse_network_spec(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
 
 
 # --------------------------------------------------------------------------- files

@@ -280,6 +280,11 @@ def _parser() -> argparse.ArgumentParser:
     lv.add_argument("video", type=arg.existing_file, metavar="VIDEO",
                     help="the video (a phone's slow motion, 240 fps, is best)")
     lv.add_argument("--tracker-box", type=arg.box, default=None, metavar="X,Y,W,H",
+    dm.add_argument("--network", type=arg.network, default=None, metavar="SPEC",
+                    help="put an emulated link between every client and the server, "
+                         "each direction delayed: DELAY[+-JITTER][,stall=HOLD/EVERY]"
+                         "[,seed=N], e.g. 40ms+-10ms or 40ms+-10ms,stall=200ms/5s "
+                         "(default: loopback)")
                     help="the real tracker (or a marker on it) in the first frame, pixels")
     lv.add_argument("--avatar-box", type=arg.box, default=None, metavar="X,Y,W,H",
                     help="the avatar's marker on the screen in the first frame, pixels")
@@ -725,7 +730,7 @@ def _demo(args: argparse.Namespace) -> int:
     result = run_demo(args.players, args.spectators, args.seconds, solver=args.solver,
                       render=args.render, render_mode=args.render_mode,
                       busy=None if args.busy_poll else False,
-                      helper=None if args.helper else False)
+                      helper=None if args.helper else False, network=args.network)
     if args.json:
         print(json.dumps(result.as_json()))
     else:
@@ -736,3 +741,4 @@ def _demo(args: argparse.Namespace) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
+        print(result.format_display_error())

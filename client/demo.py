@@ -4,7 +4,8 @@ An embedded server runs in its own process (its event loop must not share a core
 with the clients it serves, or its latency would measure theirs); N players replay the
 built-in motion from one shared schedule, as headsets at the same rate would, and M
 headless spectators receive. The result: frame counts and per-stage latency percentiles,
-all on the server clock.
+all on the server clock, and the display error of each viewer mode (``display_error``).
+With a network spec, every connection goes through the emulator (``network``), both ways.
 """
 
 from __future__ import annotations
@@ -12,21 +13,33 @@ from __future__ import annotations
 import asyncio
 import multiprocessing as mp
 import os
-from collections.abc import Callable, Coroutine
-from dataclasses import dataclass
+from collections.abc import Callable, Coroutine, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from functools import partial
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any, TypeVar
 
 from posecast.client.builtin import builtin_motion_path
 from posecast.client.connection import SessionError
+from posecast.client.display_error import (
+    Arrival,
+    CaptureLog,
+    DisplayError,
+    RecordingSource,
+    measure_display_error,
+)
 from posecast.client.latency import LatencyRecorder
+from posecast.client.network import NetworkSpec, ProxyProcess
 from posecast.client.player import PlayerStats, Ticker, run_player
 from posecast.client.sources.bvh_source import BvhSource
 from posecast.client.spectator import Spectator, SpectatorStats
 from posecast.client.viewer.headless import HeadlessViewerProcess
 from posecast.client.viewer.interpolation import Mode
-from posecast.protocol import AvatarRoster
+from posecast.protocol import AvatarBatch, AvatarRoster, ClockEstimator
+from posecast.solver.readers.gltf import load_makehuman
+from posecast.solver.rig import Rig, build_rig
 
 ROOM = "demo"
 T = TypeVar("T")
@@ -58,6 +71,10 @@ class DemoResult:
     # solved, but its row would fail a spectator's checks: dropped from its batch alone
     frames_unsendable: int = 0
     viewer: bool = False  # --render: one more spectator, whose drops frames_dropped counts
+    network: str = "loopback"  # the emulated link's spec (each direction), or loopback
+    # spectator 1's presented pose vs the player's true one, per viewer mode (mm)
+    display_error: DisplayError = field(default_factory=DisplayError)
+    proxy: dict[str, object] = field(default_factory=dict)  # the emulator's counts
 
     def as_json(self) -> dict[str, object]:
         return {"players": self.players, "spectators": self.spectators,
@@ -70,7 +87,20 @@ class DemoResult:
                 "frames_rejected": self.frames_rejected,
                 "frames_unsendable": self.frames_unsendable, "batches": self.batches,
                 "rejected": self.rejected, "frames_rendered": self.rendered,
-                "latency_ms": self.latency.summary()}
+                "latency_ms": self.latency.summary(), "network": self.network,
+                "display_error_mm": self.display_error.as_json(),
+                "playout_delay_ms": self.display_error.delay_json()}
+
+    def format_display_error(self) -> str:
+        """What a spectator sees, per viewer mode: p50/p95 of the display error."""
+        lines = [f"display error over {self.network} (spectator 1's presented pose vs the "
+                 "player's true pose at that instant, mm):"]
+        for mode, e in self.display_error.as_json().items():
+            lines.append(f"  {mode:<12} p50 {e['p50']:7.1f}  p95 {e['p95']:7.1f}")
+        d = self.display_error.delay_json()
+        lines.append(f"  interpolation's playout delay: p50 {d['p50']:.1f} ms, "
+                     f"p95 {d['p95']:.1f} ms (grows with the jitter it measures)")
+        return "\n".join(lines)
 
     def format_counts(self) -> str:
         """The counts for a reader: what each means, and whether the two identities the
@@ -200,11 +230,17 @@ def _spot(i: int, per_row: int = 4, spacing: float = 1.5) -> tuple[float, float]
     return ((i % per_row - (per_row - 1) / 2) * spacing, (i // per_row) * spacing)
 
 
-async def run_players(url: str, players: int, seconds: float,
-                      motion: Path) -> list[PlayerStats]:
-    """N players replaying the motion, all on one schedule (headsets tick together)."""
-    sources = [BvhSource(motion, loop=True, rate_hz=HEADSET_HZ, offset=_spot(i),
-                         start_frame=37 * i) for i in range(players)]
+async def run_players(url: str, players: int, seconds: float, motion: Path,
+                      recorders: list[RecordingSource] | None = None) -> list[PlayerStats]:
+    """N players replaying the motion, all on one schedule (headsets tick together).
+    ``recorders``: filled with each player's source, which keeps what it captured."""
+    sources: list[BvhSource | RecordingSource] = [
+        BvhSource(motion, loop=True, rate_hz=HEADSET_HZ, offset=_spot(i), start_frame=37 * i,
+                  smooth=True)
+        for i in range(players)]
+    if recorders is not None:
+        sources = [RecordingSource(s) for s in sources]
+        recorders.extend(sources)  # type: ignore[arg-type]
     ticker = Ticker(sources[0].rate_hz) if sources else None
     try:
         return list(await asyncio.gather(*(
@@ -219,19 +255,29 @@ def _players_process(pipe: Connection, url: str, players: int, seconds: float,
                      motion: Path, cores: Cores) -> None:
     pin_to_cores("players", cores)
     pipe.recv()  # go: the spectators are in the room
-    stats = _run(run_players(url, players, seconds, motion))
-    pipe.send([(p.frames_sent, dict(p.errors)) for p in stats])
+    recorders: list[RecordingSource] = []
+    stats = _run(run_players(url, players, seconds, motion, recorders))
+    pipe.send([(p.frames_sent, dict(p.errors), r.log(p.avatar_id))
+               for p, r in zip(stats, recorders, strict=True)])
 
 
 class _DemoSpectator(Spectator):
     """A headless spectator that tells when it is in the room and reads until the server
     closes the connection: it then has every frame the server handed to its socket."""
 
-    def __init__(self, url: str, name: str) -> None:
+    def __init__(self, url: str, name: str, record: bool = False) -> None:
         super().__init__(url, ROOM, name)
         # set on the first roster: the server writes it and adds the spectator to the
         # room in one step, so every batch solved after that is offered to it
         self.in_room = asyncio.Event()
+        # every batch as it came, for the display error (an append: nothing per frame)
+        self.arrivals: list[Arrival] | None = [] if record else None
+
+    def on_batch(self, batch: AvatarBatch, t_local: float, clock: ClockEstimator) -> None:
+        super().on_batch(batch, t_local, clock)
+        if self.arrivals is not None:
+            self.arrivals.append(Arrival(t_local, clock.offset if clock.synced else None,
+                                         batch))
 
     def on_roster(self, roster: AvatarRoster) -> None:
         super().on_roster(roster)
@@ -252,13 +298,16 @@ async def run_clients(url: str, players: int, spectators: int, seconds: float,
                       motion: Path, render: Path | None = None,
                       render_mode: str = "interpolate", cores: Cores = (),
                       stop_server: Callable[[], None] = lambda: None,
-                      ) -> tuple[int, list[SpectatorStats], dict[str, Any]]:
+                      ) -> tuple[int, list[SpectatorStats], dict[str, Any],
+                                 list[CaptureLog], list[Arrival]]:
     """Spectators here, players in a process of their own: a player's capture must not
     wait behind spectators decoding (on separate machines it would not). Returns the
-    frames the players sent and the spectators' stats. Once the players are done it
-    calls ``stop_server``; the spectators end when the server closes their connections
-    (``EmbeddedServer.stop``)."""
-    watchers = [_DemoSpectator(url, f"spectator {i + 1}") for i in range(spectators)]
+    frames the players sent, the spectators' stats, the viewer's result, what the players
+    captured and what spectator 1 received (for the display error). Once the players are
+    done it calls ``stop_server``; the spectators end when the server closes their
+    connections (``EmbeddedServer.stop``)."""
+    watchers = [_DemoSpectator(url, f"spectator {i + 1}", record=i == 0)
+                for i in range(spectators)]
     spectator_tasks = [asyncio.create_task(w.run_until_closed()) for w in watchers]
     ctx = mp.get_context("spawn")
     pipe, child = ctx.Pipe()
@@ -285,6 +334,8 @@ async def run_clients(url: str, players: int, spectators: int, seconds: float,
             await asyncio.wait_for(ready.wait(), seconds + 60)
         finally:
             loop.remove_reader(pipe.fileno())
+        # the loop made the pipe non-blocking; the players' capture logs span many reads
+        os.set_blocking(pipe.fileno(), True)
         player_stats = pipe.recv()
         process.join(10)
     finally:
@@ -295,28 +346,34 @@ async def run_clients(url: str, players: int, spectators: int, seconds: float,
         stop_server()
     spectator_stats = await asyncio.wait_for(asyncio.gather(*spectator_tasks),
                                              STOP_TIMEOUT)
-    return (sum(sent for sent, _ in player_stats), list(spectator_stats),
-            viewer.result if viewer is not None else {})
+    captures = [log for _, _, log in player_stats if log is not None]
+    arrivals = (watchers[0].arrivals or []) if watchers else []
+    return (sum(sent for sent, _, _ in player_stats), list(spectator_stats),
+            viewer.result if viewer is not None else {}, captures, arrivals)
 
 
 def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
              motion: Path | None = None, solver: str = "analytic",
              render: Path | None = None, render_mode: str = "interpolate",
-             busy: bool | None = None, helper: bool | None = None) -> DemoResult:
+             busy: bool | None = None, helper: bool | None = None,
+             network: NetworkSpec | None = None) -> DemoResult:
     """The session; with ``render``, a headless viewer also draws the room to PNG files
     there and its ``capture_to_render`` joins the latency stages. ``busy``: the server
     busy-polls (``server.busy``); by default when it has a core of its own. ``helper``:
     a solver helper thread on the clients' core (``server.helper``); by default with
-    busy polling."""
+    busy polling. ``network``: every client connects through the emulator (its own
+    process, on the clients' cores), delayed both ways."""
     motion = motion or builtin_motion_path()
     cores = demo_cores()
     if busy is None:
         busy = len(cores) >= 2  # pin_to_cores gives the server the first core alone
     try:
-        with EmbeddedServer(solver, cores, busy, helper) as server:
+        with EmbeddedServer(solver, cores, busy, helper) as server, \
+                _network(server.port, network, cores) as proxy:
             pin_to_cores("spectators", cores)  # they run here (see run_clients)
-            frames_sent, spectator_stats, viewed = _run(run_clients(
-                server.url, players, spectators, seconds, motion, render, render_mode,
+            url = proxy.url if proxy is not None else server.url
+            frames_sent, spectator_stats, viewed, captures, arrivals = _run(run_clients(
+                url, players, spectators, seconds, motion, render, render_mode,
                 cores, server.stop))
     finally:
         if cores:
@@ -339,7 +396,26 @@ def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
         frames_discarded=int(metrics.get("frames_discarded", 0)),  # type: ignore[call-overload]
         frames_rejected=int(metrics.get("frames_rejected", 0)),  # type: ignore[call-overload]
         frames_unsendable=int(metrics.get("frames_unsendable", 0)),  # type: ignore[call-overload]
-        viewer=render is not None)
+        viewer=render is not None, network=str(network) if network else "loopback",
+        # after the session, from what was recorded: it cost the session nothing
+        display_error=measure_display_error(captures, arrivals, _server_rig(), solver),
+        proxy=proxy.stats if proxy is not None else {})
+
+
+def _server_rig() -> Rig:
+    """The rig the embedded server solves with (``server.app.Session``'s default)."""
+    return build_rig(load_makehuman().skeleton)
+
+
+@contextmanager
+def _network(port: int, spec: NetworkSpec | None, cores: Cores
+             ) -> Iterator[ProxyProcess | None]:
+    """The emulator in front of the server on ``port`` (nothing without a spec)."""
+    if spec is None:
+        yield None
+        return
+    with ProxyProcess(port, spec, setup=partial(pin_to_cores, "network", cores)) as proxy:
+        yield proxy
 
 
 def _run(coro: Coroutine[Any, Any, T]) -> T:

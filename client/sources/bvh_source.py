@@ -52,7 +52,12 @@ class BvhSource:
 
     def __init__(self, path: str | Path, loop: bool = False,
                  rate_hz: float | None = None, offset: tuple[float, float] = (0.0, 0.0),
-                 start_frame: int = 0) -> None:
+                 start_frame: int = 0, smooth: bool = False) -> None:
+        """``smooth``: sample the clip between its frames at the read's instant (position
+        lerp, rotation slerp) instead of at the nearest frame, as a headset samples a
+        body: at 90 Hz from 120 fps, nearest frames step 1, 2, 1 frames apart, a body
+        whose speed jumps +-50% every sample, which no velocity-based prediction
+        follows (the demo's display error)."""
         try:
             motion = read_bvh(path)  # a FormatError (file, line, what) propagates as it is
         except OSError as err:
@@ -84,6 +89,7 @@ class BvhSource:
         self.rate_hz = float(rate_hz or motion.fps)
         self._step = float(motion.fps) / self.rate_hz
         self.loop = loop
+        self.smooth = smooth
         self.next_frame = start_frame % self.num_frames
         self._position = float(self.next_frame)
 
@@ -127,11 +133,22 @@ class BvhSource:
                 return None
             self.next_frame = 0
         f = self.next_frame
+        at = self._position
         self._position += self._step
         if round(self._position) >= self.num_frames and self.loop:
             self._position -= self.num_frames
         self.next_frame = round(self._position)
+        if self.smooth:
+            return DeviceSample(now(), ROLES, self._between(at))
         return DeviceSample(now(), ROLES, self.poses[f].copy())
+
+    def _between(self, at: float) -> Array:
+        """The rows at fractional frame ``at`` (new): lerp and slerp of its two frames."""
+        i = min(max(int(np.floor(at)), 0), self.num_frames - 1)
+        j = (i + 1) % self.num_frames if self.loop else min(i + 1, self.num_frames - 1)
+        a, b, w = self.poses[i], self.poses[j], min(max(at - i, 0.0), 1.0)
+        return np.concatenate([a[:, :3] + w * (b[:, :3] - a[:, :3]),
+                               R.slerp(a[:, 3:], b[:, 3:], w)], axis=1)
 
     def close(self) -> None:
         pass

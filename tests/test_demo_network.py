@@ -1,0 +1,49 @@
+"""`posecast demo --network`: the real CLI with the emulator between every client and the
+server; its display error per viewer mode against a loopback run."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from typing import Any
+
+from posecast.client.viewer.interpolation import Mode
+
+WAIT = 300.0  # a subprocess that spawns a server, players and the emulator, on 2 cores
+
+
+def _demo(*extra: str) -> dict[str, Any]:
+    done = subprocess.run([sys.executable, "-m", "posecast.client.cli", "demo",
+                           "--players", "2", "--spectators", "1", "--seconds", "3",
+                           "--json", *extra], capture_output=True, text=True, timeout=WAIT,
+                          env={**os.environ, "PYTHONWARNINGS": "ignore"})
+    assert done.returncode == 0, done.stderr
+    doc: dict[str, Any] = json.loads(done.stdout)
+    return doc
+
+
+def test_demo_over_an_emulated_link_reports_the_display_error_of_each_mode() -> None:
+    loopback = _demo()
+    far = _demo("--network", "40ms+-10ms")
+    assert loopback["network"] == "loopback" and far["network"] == "40ms+-10ms"
+    modes = {m.value for m in Mode}  # interpolate, zero-buffer and predict
+    for doc in (loopback, far):
+        errors = doc["display_error_mm"]
+        assert set(errors) == modes
+        for e in errors.values():
+            assert e["n"] > 30  # ~1.5 s per avatar at 60 Hz, once the buffers settled
+            assert 0.0 < e["p50"] <= e["p95"]
+    # each way 30 to 50 ms: nothing reaches a spectator in less than 60 ms
+    assert far["latency_ms"]["capture_to_spectator"]["p50"] >= 60.0
+    assert loopback["latency_ms"]["capture_to_spectator"]["p50"] < 60.0
+    # what the spectator shows lags the body further: more error in the modes that
+    # show received poses as they are (the walker moves ~1.3 m/s: 80 ms is ~100 mm)
+    for mode in (Mode.LATEST.value, Mode.INTERPOLATE.value):
+        assert (far["display_error_mm"][mode]["p50"]
+                > loopback["display_error_mm"][mode]["p50"] + 30.0), mode
+    # the buffer holds frames longer as it measures the link's jitter: +-10 ms each way
+    # spreads arrivals over ~40 ms, and a capture interval (11 ms) comes on top (load
+    # only adds jitter; tests/test_network.py compares a calm and a jittery link)
+    assert far["playout_delay_ms"]["p50"] >= 25.0
