@@ -90,9 +90,13 @@ def plot_latency(result: VideoLatency, path: Path, title: str = "") -> None:
     for trace, color in ((result.tracker, TRACKER_COLOR), (result.avatar, AVATAR_COLOR)):
         draw.line([(px(t), py(v)) for t, v in zip(times, trace, strict=True)],
                   fill=color, width=2)
-    for t_frame, a_frame in result.pairs:
-        draw.line([(px(t_frame * to_ms), py(_value_at(result.tracker, t_frame))),
-                   (px(a_frame * to_ms), py(_value_at(result.avatar, a_frame)))],
+    for t_frame, a_frame in result.pairs:  # a bracket beyond each pair of turns
+        yt = py(_value_at(result.tracker, t_frame))
+        ya = py(_value_at(result.avatar, a_frame))
+        out = -14.0 if _value_at(result.tracker, t_frame) > 0 else 14.0
+        bar = (min(yt, ya) if out < 0 else max(yt, ya)) + out
+        draw.line([(px(t_frame * to_ms), yt + out / 2), (px(t_frame * to_ms), bar),
+                   (px(a_frame * to_ms), bar), (px(a_frame * to_ms), ya + out / 2)],
                   fill=PAIR_COLOR, width=2)
     for peaks, trace, color in ((result.tracker_peaks, result.tracker, TRACKER_COLOR),
                                 (result.avatar_peaks, result.avatar, AVATAR_COLOR)):

@@ -11,6 +11,7 @@ same path ``delay`` frames later; pixel noise over everything; 240 fps, MJPG in 
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
@@ -38,9 +39,12 @@ def swing(frames: int, fps: float = FPS) -> np.ndarray:
 
 
 def write_swing_video(path: Path, delay: int, seconds: float = 3.0, fps: float = FPS,
-                      still: bool = False, seed: int = 0) -> tuple[Box, Box]:
+                      still: bool = False, seed: int = 0,
+                      display_hz: float | None = None) -> tuple[Box, Box]:
     """Write the video; return the (tracker, avatar) boxes in its first frame. ``still``:
-    neither marker moves (a video without motion)."""
+    neither marker moves (a video without motion). ``display_hz``: the avatar changes only
+    at this refresh rate (a 90 Hz screen filmed at 240 fps), which adds to the delay
+    half a refresh on average and spreads it."""
     rng = np.random.default_rng(seed)
     frames = int(fps * seconds)
     x = swing(frames + delay, fps) if not still else np.full(frames + delay, 0.5)
@@ -55,7 +59,10 @@ def write_swing_video(path: Path, delay: int, seconds: float = 3.0, fps: float =
         for i in range(delay, frames + delay):
             frame = np.full((HEIGHT, WIDTH, 3), 110.0)
             xt = round(10 + x[i] * travel)
-            xa = round(WIDTH // 2 + 10 + x[i - delay] * travel)
+            # the screen shows its newest refresh, of the pose ``delay`` frames before it
+            refresh = i if display_hz is None else round(
+                math.floor(i / fps * display_hz + 1e-9) * fps / display_hz)
+            xa = round(WIDTH // 2 + 10 + x[max(refresh - delay, 0)] * travel)
             frame[60:60 + size, xt:xt + size] = tracker
             frame[140:140 + size, xa:xa + size] = avatar
             writer.write(np.clip(frame + noise[i % len(noise)], 0, 255).astype(np.uint8))

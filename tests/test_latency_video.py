@@ -71,6 +71,19 @@ def test_finds_the_delay_within_one_frame(videos: dict, delay: int) -> None:  # 
     assert not doc["mirrored"]
 
 
+def test_a_90_hz_screen_adds_its_hold_to_the_delay(tmp_path: Path) -> None:
+    """The avatar shows each pose 8 frames late, but only at 90 Hz refreshes: held for
+    1.125 more frames on average (swing_video's refresh times), 9.125 in all."""
+    path = tmp_path / "refresh.avi"
+    tracker, avatar = write_swing_video(path, 8, display_hz=90.0)
+    result = latency_video(str(path), "--tracker-box", box_text(tracker), "--avatar-box",
+                           box_text(avatar), "--json")
+    assert result.returncode == 0, result.stderr
+    doc = json.loads(result.stdout)
+    assert abs(doc["frames"] - 9.125) <= 0.5 and abs(doc["xcorr_frames"] - 9.125) <= 0.5
+    assert 0.0 < doc["latency_std_ms"] < 1000.0 / FPS  # the hold spreads the turns a little
+
+
 def test_plot_shows_both_traces_and_the_table_reads(videos: dict,  # type: ignore[type-arg]
                                                    tmp_path: Path) -> None:
     path, tracker, avatar = videos[8]
