@@ -4,6 +4,10 @@ the renderer and in a headless viewer watching a real player over a real socket.
 from __future__ import annotations
 
 import asyncio
+import json
+import math
+import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -12,6 +16,7 @@ import numpy as np
 import pytest
 from conftest import serving
 from PIL import Image
+from swing_video import marker, swing
 
 from posecast.client.builtin import builtin_motion_path
 from posecast.client.cli import _parser
@@ -29,7 +34,7 @@ from posecast.client.viewer.marker import (
     marker_size,
 )
 from posecast.client.viewer.renderer import AvatarDraw, GLUnavailableError, Renderer
-from posecast.client.viewer.skinning import fit_avatar
+from posecast.client.viewer.skinning import fit_avatar, template_avatar
 from posecast.server.app import Session
 
 W, H = 640, 480
@@ -122,6 +127,61 @@ def test_headless_viewer_draws_the_marker_on_a_live_player(egl: None,
     for path in sorted(tmp_path.glob("frame_*.png")):
         score, _ = find_marker(np.asarray(Image.open(path).convert("RGB")))
         assert score > 0.95, path
+
+
+def test_latency_video_follows_the_rendered_marker(renderer: Renderer,
+                                                  tmp_path: Path) -> None:
+    """Film posecast itself, synthetically: on the left a textured tracker swinging, on
+    the right the viewer's frames (the avatar carried by the same swing, --marker on its
+    right hand) rendered at 90 Hz and showing each pose 10 camera frames late. KCF must
+    follow the rendered marker, and the tool find 10 frames plus the 90 Hz hold (1.125
+    on average with swing_video's refresh times)."""
+    delay, fps, hz, frames = 10, 240.0, 90.0, 720
+    x = swing(frames + delay)
+    m = renderer.mesh
+    avatar = template_avatar(m)
+    rest = np.tile([0.0, 0.0, 0.0, 1.0], (m.skeleton.num_joints, 1))
+    root0 = m.skeleton.offsets[0]
+    camera = OrbitCamera(yaw=0.0, pitch=5.0, distance=3.0,
+                         target=(float(root0[0]), 1.0, float(root0[2]))).camera(W / H)
+    hand = m.skeleton.index(MARKER_JOINTS["right_hand"])
+    overlay = MarkerOverlay(renderer.ctx)
+    tracker = marker(1)
+    size = tracker.shape[0]
+    path = tmp_path / "posecast_filmed.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, (2 * W, H))
+    boxes: list[str] = []
+    shown, shown_refresh = np.zeros((H, W, 3), np.uint8), -1
+    try:
+        for i in range(delay, frames + delay):
+            refresh = round(math.floor(i / fps * hz + 1e-9) * fps / hz)
+            if refresh != shown_refresh:  # the screen draws a new frame
+                root = root0 + np.array([1.2 * x[max(refresh - delay, 0)] - 0.6, 0.0, 0.0])
+                posed = renderer.pose([AvatarDraw(avatar, rest, root)])
+                renderer.render(posed, camera)
+                centres = marker_centres(posed, hand, camera, W, H)
+                overlay.draw(centres, W, H)
+                shown, shown_refresh = renderer.read()[:, :, ::-1].copy(), refresh  # BGR
+            left = np.full((H, W, 3), 110, np.uint8)
+            xt = round(10 + x[i] * (W - size - 20))
+            left[100:100 + size, xt:xt + size] = tracker
+            writer.write(np.hstack([left, shown]))
+            if not boxes:
+                side = marker_size(H)
+                cx, cy = centres[0]
+                boxes = [f"{xt},100,{size},{size}",
+                         f"{W + round(cx - side / 2)},{round(cy - side / 2)},{side},{side}"]
+    finally:
+        writer.release()
+        overlay.release()
+    result = subprocess.run([sys.executable, "-m", "posecast.client.cli", "latency-video",
+                             str(path), "--tracker-box", boxes[0], "--avatar-box", boxes[1],
+                             "--json"], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    doc = json.loads(result.stdout)
+    assert doc["lost_frames"] == {"tracker": 0, "avatar": 0}
+    assert abs(doc["frames"] - (delay + 1.125)) <= 1.0, doc
+    assert abs(doc["xcorr_frames"] - (delay + 1.125)) <= 1.0, doc
 
 
 def test_marker_option_defaults_to_the_right_hand() -> None:
