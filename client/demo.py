@@ -89,7 +89,9 @@ class DemoResult:
                 "rejected": self.rejected, "frames_rendered": self.rendered,
                 "latency_ms": self.latency.summary(), "network": self.network,
                 "display_error_mm": self.display_error.as_json(),
-                "playout_delay_ms": self.display_error.delay_json()}
+                "playout_delay_ms": self.display_error.delay_json(),
+                # the emulator's chunks, bytes, stalls and median delay per direction
+                "network_counts": self.proxy}
 
     def format_display_error(self) -> str:
         """What a spectator sees, per viewer mode: p50/p95 of the display error."""

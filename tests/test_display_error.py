@@ -113,3 +113,16 @@ def test_the_playout_delay_is_reported_per_instant() -> None:
     assert result.delay_json()["p50"] == pytest.approx(1e3 / RATE, abs=0.5)
     assert set(result.as_json()) == {m.value for m in Mode}
     assert all(e["n"] > 0 for e in result.as_json().values())
+
+
+def test_a_pose_on_time_is_the_true_pose() -> None:
+    """Presented just as each frame arrives, with no delay, the received pose is the true
+    one: the truth is the server's solve of the same samples (these batches are not
+    encoded, so not even the wire's quantization of the rotations is left)."""
+    captures, arrivals = _arrivals(2.5, 0.0)
+    # instants 1 us after each capture (90 Hz from the first frame + 1 s): that frame is in
+    result = measure_display_error(captures, arrivals, _server_rig(), rate_hz=RATE,
+                                   settle_s=1.0 + 1e-6)
+    on_time = result.errors_mm[Mode.LATEST.value]
+    assert len(on_time) > 60
+    assert float(np.percentile(on_time, 95)) < 0.1, np.percentile(on_time, [50, 95, 100])
