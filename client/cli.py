@@ -109,6 +109,9 @@ def _parser() -> argparse.ArgumentParser:
                     help="bone lengths fitted to the T-pose, or the paper's one uniform scale")
     ev.add_argument("--smoothing", type=arg.fraction, default=0.0,
                     help="SLERP smoothing, weight of the previous frame in [0, 1)")
+    ev.add_argument("--map", type=arg.existing_file, default=None, metavar="FILE",
+                    help="BVH joint name -> role (.json or .toml) for rigs whose names and "
+                         "shape are not recognised, e.g. {\"Bone_7\": \"forearm_l\"}")
     ev.add_argument("--json", action="store_true", help="print one JSON document")
 
     sub.add_parser("warm", help="compile the solver kernels now, into numba's on-disk cache "
@@ -421,7 +424,7 @@ def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
         from posecast.client.eval_command import run_eval
 
         return run_eval(args.files, args.solver, args.max_iterations, args.calibration,
-                        args.smoothing, args.json)
+                        args.smoothing, args.json, joint_map=args.map)
     if args.command == "token":
         return _token(args)
     if args.command == "latency-video":

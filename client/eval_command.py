@@ -1,10 +1,12 @@
 """`posecast eval`: read each recording, reconstruct and score it, print a table or JSON.
 
 A file that cannot be read gives one line naming the file and the line, and the command
-exits with status 1 after scoring the others."""
+exits with status 1 after scoring the others (with --json, each failure is also in the
+document's ``failures``: file and reason)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -21,43 +23,71 @@ from posecast.solver.evaluation import (
 from posecast.solver.ik import SolverOptions
 from posecast.solver.readers.bvh import read_bvh
 from posecast.solver.readers.errors import FormatError
+from posecast.solver.readers.joint_map import read_joint_map
 from posecast.solver.readers.vive import read_vive
+from posecast.solver.skeleton import SkeletonError
 
 
-def evaluate_file(path: Path, options: EvalOptions, progress: ProgressBar | None) -> ClipResult:
+def evaluate_file(path: Path, options: EvalOptions, progress: ProgressBar | None,
+                  joint_map: dict[str, str] | None = None) -> ClipResult:
     suffix = path.suffix.lower()
     if suffix == ".bvh":
-        return evaluate_bvh(read_bvh(path), options, progress)
+        motion = read_bvh(path)
+        if joint_map:  # --map: these joints play these roles, whatever their names
+            motion = dataclasses.replace(motion, skeleton=dataclasses.replace(
+                motion.skeleton, role_names=joint_map))
+        return evaluate_bvh(motion, options, progress)
     if suffix in (".csv", ".txt"):
         return evaluate_vive(read_vive(path), options, progress=progress)
     raise FormatError(str(path), None, "unknown kind of recording: expected .csv (Vive) or .bvh")
 
 
+def _why(path: Path, err: Exception) -> str:
+    """One line: the file and why it cannot be scored."""
+    if isinstance(err, FormatError):
+        return str(err)  # names the file and the line already
+    if isinstance(err, OSError):
+        return f"{path}: {err.strerror}"
+    return f"{path}: {err}"
+
+
 def run_eval(files: list[Path], solver: str, iterations: list[int] | None,
-             calibration: str, smoothing: float, as_json: bool) -> int:
+             calibration: str, smoothing: float, as_json: bool,
+             joint_map: Path | None = None) -> int:
     if not files:
         files = [builtin_motion_path()]
+    try:
+        roles = read_joint_map(joint_map) if joint_map is not None else None
+    except (FormatError, OSError) as err:
+        msg = err if isinstance(err, FormatError) else f"{joint_map}: {err.strerror}"
+        print(f"posecast eval: --map: {msg}", file=sys.stderr)
+        return 2
     runs: list[int | None] = list(iterations) if iterations else [None]
     failed = False
     documents = []
     for limit in runs:
+        failures: list[dict[str, str]] = []
         options = EvalOptions(solver, SolverOptions(max_iterations=limit), calibration,
                               smoothing)
         clips: list[ClipResult] = []
         for path in files:
             bar = None if as_json else ProgressBar(path.name)
             try:
-                clips.append(evaluate_file(path, options, bar))
-            except (FormatError, OSError) as err:
-                msg = err if isinstance(err, FormatError) else f"{path}: {err.strerror}"
+                clips.append(evaluate_file(path, options, bar, roles))
+            except (FormatError, SkeletonError, OSError) as err:
+                # one line per file that cannot be scored; the others still are
+                msg = _why(path, err)
                 print(f"posecast eval: {msg}", file=sys.stderr)
-                failed = True
+                failures.append({"file": str(path), "error": msg})
             finally:
                 if bar is not None:
                     bar.close()
         doc: dict[str, object] = {"solver": solver,
                                   "clips": [c.as_json() for c in clips],
                                   "summary": summarize(clips) if clips else {}}
+        if failures:
+            doc["failures"] = failures
+            failed = True
         if limit is not None:
             doc["max_iterations"] = limit
         documents.append((limit, clips, doc))

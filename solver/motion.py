@@ -55,7 +55,8 @@ def drop_static_root(motion: Motion) -> Motion:
     trans[:, 0] = t0 + R.rotate(q0, trans[:, 0])
     first = motion.first_frame
     # as read_bvh does: the offsets are the first motion frame's translations
-    skeleton = Skeleton(sk.names[1:], sk.parents[1:] - 1, trans[first], sk.tips[1:])
+    skeleton = Skeleton(sk.names[1:], sk.parents[1:] - 1, trans[first], sk.tips[1:],
+                        sk.role_names)
     return Motion(skeleton=skeleton, rotations=rot, translations=trans, fps=motion.fps,
                   source=motion.source, first_frame=first)
 

@@ -76,7 +76,7 @@ def _bone_dir(skeleton: Skeleton, roles: dict[str, list[int]], role: str, j: int
         forearm = roles["forearm" + role[-2:]][0]
         return R.normalize_vec(gp[j] - gp[forearm])
     child_role = _BONE_CHILD.get(base)
-    if child_role is not None:
+    if child_role is not None and child_role + role[-2:] in roles:  # toes are optional
         child = roles[child_role + role[-2:]][0]
         return R.normalize_vec(gp[child] - gp[j])
     kids = skeleton.children(j)

@@ -9,6 +9,7 @@ transform. Degrees of freedom and angle limits are not stored here: they are dat
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -27,6 +28,9 @@ class Skeleton:
     # (J, 3) offset of a leaf joint's end point (BVH "End Site", the tip of a bone with no
     # child joint), zero where unknown; gives leaf bones (head, toes) a direction.
     tips: NDArray[np.float64] = field(default=None)  # type: ignore[arg-type]
+    # joint name -> canonical role, given by the user (``eval --map``) for joints whose
+    # names no table knows; naming.roles honours it before names and shape
+    role_names: Mapping[str, str] | None = None
 
     def __post_init__(self) -> None:
         parents = np.asarray(self.parents, dtype=np.int32)
@@ -76,4 +80,4 @@ class Skeleton:
                      tips: NDArray[np.float64] | None = None) -> Skeleton:
         """The same hierarchy with other bone offsets (a calibrated person)."""
         return Skeleton(self.names, self.parents, offsets,
-                        self.tips if tips is None else tips)
+                        self.tips if tips is None else tips, self.role_names)
