@@ -3,10 +3,12 @@
 A human skeleton, whatever its names, is a tree with two branch points that matter: the
 pelvis, where the spine and both legs leave, and the chest, where the neck and both arms
 leave. Fingers and toes branch too, but they are short: a branch counts only if it reaches
-far (``BRANCH_SHARE`` of the body's span). Along a limb the two longest
-consecutive bones are the thigh and shin (femur, tibia) or the upper arm and forearm
-(humerus, radius), which places every limb role; the side of each limb follows from the
-rest pose (left = up x forward, forward from the feet). Pure: rest offsets in, roles out.
+far (``BRANCH_SHARE`` of the body's span). Along a leg the two longest consecutive bones
+are the thigh and shin (femur, tibia); the longest bone of an arm is the upper arm
+(humerus). That places every limb role. The side of each limb follows from the rest pose
+(left = up x forward, forward from the feet): a rest pose that does not stand (Bandai's
+lies in a line) cannot tell left from right, and such a rig needs names or ``--map``.
+Pure: rest offsets in, roles out.
 """
 
 from __future__ import annotations
@@ -129,7 +131,15 @@ def infer_roles(skeleton: Skeleton) -> dict[str, list[int]]:
     limbs: dict[str, list[int]] = {}
     for n, start in enumerate(arms):
         c = shape.chain(start)
-        u = _long_pair(shape, c, 1)  # one bone before the upper arm: the clavicle
+        # the humerus is the arm's longest bone (a clavicle measured from the spine's
+        # middle, as CMU's, is nearly as long as the forearm: no pair rule here)
+        if len(c) < 3:
+            raise SkeletonError(f"the arm from {names[start]!r} is too short "
+                                f"({len(c)} joints) to hold its roles")
+        u = max(range(len(c) - 2), key=lambda k: shape.segment(c, k))
+        if u == 0:  # the solvers' arm chains start one bone before the upper arm
+            raise SkeletonError(f"the arm from {names[start]!r} has no clavicle before "
+                                f"its upper arm")
         limbs[f"arm{n}"] = c[u - 1:u + 3]
     for n, start in enumerate(legs):
         c = shape.chain(start)

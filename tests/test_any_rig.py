@@ -13,13 +13,15 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import pytest
 from bvh_rig import DAZ, RIGS, rename_bvh
 
 from posecast.client.builtin import builtin_motion_path
 from posecast.solver import naming, structure
 from posecast.solver.readers.bvh import read_bvh
-from posecast.solver.skeleton import SkeletonError
+from posecast.solver.readers.gltf import load_makehuman
+from posecast.solver.skeleton import Skeleton, SkeletonError
 
 CMU = builtin_motion_path()  # CMU 02_01, MotionBuilder names
 TOES = frozenset({"LeftToeBase", "RightToeBase"})
@@ -83,12 +85,34 @@ def test_shape_alone_finds_the_roles_names_would(tmp_path: Path) -> None:
     assert by_shape == naming.roles(read_bvh(CMU).skeleton)
 
 
+def test_shape_reads_the_makehuman_rig_with_its_fingers() -> None:
+    sk = load_makehuman().skeleton  # 53 joints: fifteen per hand, toes, a root
+    assert structure.infer_roles(sk) == naming.roles(sk)
+
+
 def test_a_skeleton_that_is_no_body_names_the_way_out(tmp_path: Path) -> None:
     path = _write(tmp_path, "legless", {}, frozenset({"LeftUpLeg", "RightUpLeg"}))
     with pytest.raises(SkeletonError) as err:
         naming.roles(read_bvh(path).skeleton)
     message = str(err.value)
     assert "thigh_l" in message and "--map FILE" in message and "\n" not in message
+
+
+def test_shape_refuses_arms_without_clavicles() -> None:
+    # Unity's humanoid makes the shoulders optional: an upper arm straight on the chest
+    sk = read_bvh(CMU).skeleton
+    gone = {sk.index("LeftShoulder"), sk.index("RightShoulder")}
+    keep = [j for j in range(sk.num_joints) if j not in gone]
+    new_index = {j: k for k, j in enumerate(keep)}
+    parents = [sk.parents[sk.parents[j]] if sk.parents[j] in gone else sk.parents[j]
+               for j in keep]
+    offsets = [sk.offsets[j] + (sk.offsets[sk.parents[j]] if sk.parents[j] in gone else 0)
+               for j in keep]
+    short = Skeleton(tuple(f"Bone_{k}" for k in range(len(keep))),
+                     np.array([new_index.get(int(p), -1) for p in parents]),
+                     np.array(offsets), sk.tips[keep])
+    with pytest.raises(SkeletonError, match="has no clavicle before its upper arm"):
+        naming.roles(short)
 
 
 def test_renamed_rigs_score_as_the_original_through_the_real_command(tmp_path: Path
