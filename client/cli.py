@@ -23,6 +23,7 @@ from posecast.protocol.validation import ROOM_NAME_RULE
 from posecast.server.limits import ServerLimits
 from posecast.solver.ik import DEFAULT_SOLVER, SOLVERS, SolverOptions
 from posecast.solver.motion import VIVE_DEVICES  # view --marker's joints
+from posecast.solver.prediction import KINDS as PREDICTORS
 
 if TYPE_CHECKING:
     import ssl
@@ -109,6 +110,18 @@ def _parser() -> argparse.ArgumentParser:
                     help="bone lengths fitted to the T-pose, or the paper's one uniform scale")
     ev.add_argument("--smoothing", type=arg.fraction, default=0.0,
                     help="SLERP smoothing, weight of the previous frame in [0, 1)")
+    ev.add_argument("--delay-ms", type=arg.non_negative_float, default=None, metavar="D",
+                    help="score what a viewer shows D ms after each capture, against the "
+                         "recording at that instant (adds jitter_m_s3: mean jerk shown)")
+    ev.add_argument("--predict", action="store_true",
+                    help="with --delay-ms: carry each pose forward by D ms first (motion "
+                         "prediction, as view --mode predict does)")
+    ev.add_argument("--predictor", choices=PREDICTORS, default="posecast",
+                    help="posecast's predictor, or a baseline to compare: constant velocity, "
+                         "SlimeVR's averaged deltas")
+    ev.add_argument("--predict-on", choices=("joints", "trackers"), default="joints",
+                    help="predict the solved joint rotations (the viewer's way) or the "
+                         "trackers before the solve (the server's)")
     ev.add_argument("--map", type=arg.existing_file, default=None, metavar="FILE",
                     help="BVH joint name -> role (.json or .toml) for rigs whose names and "
                          "shape are not recognised, e.g. {\"Bone_7\": \"forearm_l\"}")
@@ -349,6 +362,12 @@ def _parser() -> argparse.ArgumentParser:
     bk.add_argument("--plot", type=arg.out_file, default=None, metavar="FILE.png",
                     help="also draw RSS, open files and rates over time to this PNG")
     bk.add_argument("--json", action="store_true", help="print one JSON document")
+    bpr = bsub.add_parser("prediction", help="error a viewer's delay adds, with and without "
+                          "motion prediction (D = 0, 25, 50, 100 ms; a minute or two)")
+    bpr.add_argument("files", nargs="*", type=arg.existing_file, metavar="FILE",
+                     help="Vive .csv and .bvh recordings (default: ../shared/data/vive/*.csv "
+                          "and ../shared/data/mocap/*.bvh)")
+    bpr.add_argument("--json", action="store_true", help="print one JSON document")
     bh = bsub.add_parser("hostile", help="what one hostile client costs everyone else "
                          "(issue 14's attacks, figures beside their targets)")
     bh.add_argument("--attack", required=True, choices=_HOSTILE_ATTACKS,
@@ -424,7 +443,9 @@ def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
         from posecast.client.eval_command import run_eval
 
         return run_eval(args.files, args.solver, args.max_iterations, args.calibration,
-                        args.smoothing, args.json, joint_map=args.map)
+                        args.smoothing, args.json, delay_ms=args.delay_ms,
+                        predict=args.predict, predictor=args.predictor,
+                        predict_on=args.predict_on, joint_map=args.map)
     if args.command == "token":
         return _token(args)
     if args.command == "latency-video":
@@ -475,6 +496,19 @@ def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
         if args.plot is not None:
             plot_soak(doc, args.plot)
         print(json.dumps(doc) if args.json else format_soak_table(doc))
+        return 0
+    if args.command == "bench" and args.bench == "prediction":
+        from posecast.client.bench_prediction import (
+            bench_prediction,
+            format_prediction_table,
+            main_files,
+        )
+
+        files = main_files(args.files)
+        if files is None:
+            return 2
+        doc = bench_prediction(files)
+        print(json.dumps(doc) if args.json else format_prediction_table(doc))
         return 0
     if args.command == "bench" and args.bench == "hostile":
         from posecast.client.bench_hostile import bench_hostile, format_hostile_table

@@ -21,6 +21,7 @@ from posecast.solver.evaluation import (
     summarize,
 )
 from posecast.solver.ik import SolverOptions
+from posecast.solver.prediction import BASELINES, DEFAULT, PredictorParams
 from posecast.solver.readers.bvh import read_bvh
 from posecast.solver.readers.errors import FormatError
 from posecast.solver.readers.joint_map import read_joint_map
@@ -51,9 +52,19 @@ def _why(path: Path, err: Exception) -> str:
     return f"{path}: {err}"
 
 
+def predictor_named(name: str) -> PredictorParams:
+    return DEFAULT if name == "posecast" else BASELINES[name]
+
+
 def run_eval(files: list[Path], solver: str, iterations: list[int] | None,
              calibration: str, smoothing: float, as_json: bool,
+             delay_ms: float | None = None, predict: bool = False,
+             predictor: str = "posecast", predict_on: str = "joints",
              joint_map: Path | None = None) -> int:
+    if predict and delay_ms is None:
+        print("posecast eval: --predict carries poses forward by the delay: give "
+              "--delay-ms D too", file=sys.stderr)
+        return 2
     if not files:
         files = [builtin_motion_path()]
     try:
@@ -63,12 +74,13 @@ def run_eval(files: list[Path], solver: str, iterations: list[int] | None,
         print(f"posecast eval: --map: {msg}", file=sys.stderr)
         return 2
     runs: list[int | None] = list(iterations) if iterations else [None]
+    params = predictor_named(predictor) if predict else None
     failed = False
     documents = []
     for limit in runs:
         failures: list[dict[str, str]] = []
         options = EvalOptions(solver, SolverOptions(max_iterations=limit), calibration,
-                              smoothing)
+                              smoothing, delay_ms, params, predict_on)
         clips: list[ClipResult] = []
         for path in files:
             bar = None if as_json else ProgressBar(path.name)
@@ -90,6 +102,11 @@ def run_eval(files: list[Path], solver: str, iterations: list[int] | None,
             failed = True
         if limit is not None:
             doc["max_iterations"] = limit
+        if delay_ms is not None:
+            doc["delay_ms"] = delay_ms
+            doc["predict"] = predictor if predict else None
+            if predict:
+                doc["predict_on"] = predict_on
         documents.append((limit, clips, doc))
     if as_json:
         out = documents[0][2] if len(documents) == 1 else {
@@ -97,23 +114,30 @@ def run_eval(files: list[Path], solver: str, iterations: list[int] | None,
         print(json.dumps(out))
     else:
         for limit, clips, _ in documents:
-            print(format_table(clips, solver, limit))
+            print(format_table(clips, solver, limit, delay_ms, predictor if predict else None))
     return 1 if failed else 0
 
 
-def format_table(clips: list[ClipResult], solver: str, limit: int | None) -> str:
+def format_table(clips: list[ClipResult], solver: str, limit: int | None,
+                 delay_ms: float | None = None, predict: str | None = None) -> str:
     head = f"solver {solver}" + (f", at most {limit} iterations" if limit else "")
+    if delay_ms is not None:
+        head += (f", shown {delay_ms:g} ms after capture"
+                 + (f", predicted ({predict})" if predict else ", not predicted"))
+    delayed = delay_ms is not None
     rows = [("clip", "kind", "frames", "mean mm", "held-out mm", "rot deg", "solve us",
-             "lag ms")]
+             "jerk m/s3" if delayed else "lag ms")]
     for c in clips:
+        last = c.extra["jitter_m_s3"] if delayed else c.lag_ms
         rows.append((c.file.split("/")[-1], c.kind, str(c.frames), f"{c.mean_error_mm:.1f}",
                      f"{c.heldout_error_mm:.1f}", f"{c.rotation_error_deg:.1f}",
-                     f"{c.solve_us_p50:.1f}", f"{c.lag_ms:.1f}"))
+                     f"{c.solve_us_p50:.1f}", f"{last:.0f}" if delayed else f"{last:.1f}"))
     if clips:
         s = summarize(clips)
         rows.append(("summary", "", "", f"{s['mean_error_mm']:.1f}",
                      f"{s['heldout_error_mm']:.1f}", f"{s['rotation_error_deg']:.1f}",
-                     f"{s['solve_us_p50']:.1f}", ""))
+                     f"{s['solve_us_p50']:.1f}",
+                     f"{s['jitter_m_s3']:.0f}" if delayed else ""))
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
     lines = [head]
     for n, r in enumerate(rows):

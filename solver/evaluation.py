@@ -10,6 +10,13 @@
 
 Frames are solved one at a time in order, each warm-started from the last, exactly as
 the server does live. Frame 0 of a Vive file (the calibration pose) is not scored.
+
+With a delay D (``EvalOptions.delay_ms``, ``posecast eval --delay-ms D``) each solved frame
+is what a viewer shows D ms after its capture, scored against the recording at that
+instant (interpolated between frames when D is not a whole number of them); with a
+predictor it is first carried forward by D (``solver.prediction``), on the solved joint
+rotations as the viewer does (or on the trackers before the solve, to compare). Jitter is
+the mean jerk of what is shown (m/s^3), so that accuracy bought with shaking shows.
 """
 
 from __future__ import annotations
@@ -21,6 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from posecast.solver import rotations as R
 from posecast.solver.calibration import calibrate
 from posecast.solver.fk import forward_kinematics
 from posecast.solver.ik import PoseBatch, Solver, SolverOptions
@@ -33,6 +41,12 @@ from posecast.solver.motion import (
     drop_static_root,
 )
 from posecast.solver.naming import roles as role_map
+from posecast.solver.prediction import (
+    PredictorParams,
+    SequenceDeltas,
+    lags_needed,
+    predict_sequence,
+)
 from posecast.solver.readers.gltf import load_makehuman
 from posecast.solver.rig import Rig, build_rig
 from posecast.solver.smoothing import SlerpSmoother
@@ -54,14 +68,17 @@ class ClipResult:
     extra: dict[str, float] = field(default_factory=dict)
 
     def as_json(self) -> dict[str, object]:
-        return {"file": self.file, "kind": self.kind, "frames": self.frames,
-                "position_error_mm": {k: round(v, 2) for k, v in
-                                      self.position_error_mm.items()},
-                "mean_error_mm": round(self.mean_error_mm, 2),
-                "heldout_error_mm": round(self.heldout_error_mm, 2),
-                "rotation_error_deg": round(self.rotation_error_deg, 2),
-                "solve_us_p50": round(self.solve_us_p50, 2),
-                "lag_ms": round(self.lag_ms, 2)}
+        out: dict[str, object] = {
+            "file": self.file, "kind": self.kind, "frames": self.frames,
+            "position_error_mm": {k: round(v, 2) for k, v in self.position_error_mm.items()},
+            "mean_error_mm": round(self.mean_error_mm, 2),
+            "heldout_error_mm": round(self.heldout_error_mm, 2),
+            "rotation_error_deg": round(self.rotation_error_deg, 2),
+            "solve_us_p50": round(self.solve_us_p50, 2),
+            "lag_ms": round(self.lag_ms, 2)}
+        if "jitter_m_s3" in self.extra:  # a delayed run (--delay-ms) adds what was shown
+            out["jitter_m_s3"] = round(self.extra["jitter_m_s3"], 1)
+        return out
 
 
 @dataclass(frozen=True)
@@ -70,6 +87,9 @@ class EvalOptions:
     solver_options: SolverOptions = field(default_factory=SolverOptions)
     calibration: str = "fit"
     smoothing: float = 0.0  # SLERP smoothing factor, 0 = off
+    delay_ms: float | None = None  # what a viewer shows this late (None: as solved)
+    predictor: PredictorParams | None = None  # carry it forward by the delay
+    predict_on: str = "joints"  # "joints": solved rotations (the viewer); "trackers"
 
 
 def _solve_sequence(solver: Solver, targets: NDArray[np.float64], state: PoseBatch,
@@ -98,37 +118,156 @@ def _solve_sequence(solver: Solver, targets: NDArray[np.float64], state: PoseBat
     return rots, roots, times
 
 
-def evaluate_vive(rec: ViveRecording, options: EvalOptions = EvalOptions(),
-                  rig: Rig | None = None, progress: Progress | None = None) -> ClipResult:
+Points = Callable[[NDArray[np.float64], NDArray[np.float64]],
+                  tuple[NDArray[np.float64], NDArray[np.float64]]]
+Resolve = Callable[[NDArray[np.float64], NDArray[np.float64]],
+                   tuple[NDArray[np.float64], NDArray[np.float64]]]
+
+
+@dataclass
+class Reconstruction:
+    """A recording solved once, with all it takes to score what a viewer shows at any
+    delay, with or without prediction, without solving again (``score``)."""
+
+    file: str
+    kind: str
+    fps: float
+    names: list[str]  # the scored points: Vive devices or BVH joints
+    held: list[int]  # the held-out ones
+    rots: NDArray[np.float64]  # (F, J, 4) solved local rotations
+    roots: NDArray[np.float64]  # (F, 3)
+    truth_p: NDArray[np.float64]  # (F, P, 3) the recording's points
+    truth_q: NDArray[np.float64]  # (F, P, 4)
+    tracker_p: NDArray[np.float64]  # (F, E, 3) what drives the solve
+    tracker_q: NDArray[np.float64]  # (F, E, 4)
+    points: Points  # solved (rots, roots) -> the scored points' (positions, rotations)
+    resolve: Resolve  # tracker poses (F, E, 3/4) -> solved (rots, roots), solved afresh
+    solve_us_p50: float
+    lag_ms: float
+    extra: dict[str, float] = field(default_factory=dict)
+    _deltas: SequenceDeltas | None = None
+
+    def deltas(self, lags: int) -> SequenceDeltas:
+        """The solved rotations' and roots' deltas, computed once for every predictor."""
+        if self._deltas is None or self._deltas.dq.shape[0] < lags:
+            self._deltas = SequenceDeltas.of(self.rots, self.roots[:, None], self.fps, lags)
+        return self._deltas
+
+    def shown(self, delay_s: float, predictor: PredictorParams | None, predict_on: str
+              ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Solved rotations and roots as shown ``delay_s`` after capture."""
+        if predictor is None or delay_s <= 0.0:
+            return self.rots, self.roots
+        if predict_on == "trackers":
+            tq, tp = predict_sequence(self.tracker_q, self.tracker_p, self.fps, delay_s,
+                                      predictor)
+            return self.resolve(tp, tq)
+        rots, roots = self.deltas(lags_needed(predictor, self.fps)).predict(predictor, delay_s)
+        return rots, roots[:, 0]
+
+
+def _at_offset(p: NDArray[np.float64], q: NDArray[np.float64], shift: float
+               ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Points (F, P, 3/4) at frame g + shift for every g that has a frame after it:
+    positions linearly, rotations by SLERP."""
+    F = p.shape[0]
+    whole = int(np.floor(shift))
+    frac = shift - whole
+    n = F - whole - (1 if frac > 1e-9 else 0)
+    a = np.arange(n) + whole
+    if frac <= 1e-9:
+        return p[a], q[a]
+    return (p[a] + frac * (p[a + 1] - p[a]),
+            R.slerp(q[a], q[a + 1], np.full(q[a].shape[:-1], frac)))
+
+
+def score(recon: Reconstruction, delay_ms: float = 0.0,
+          predictor: PredictorParams | None = None, predict_on: str = "joints",
+          with_jitter: bool = True) -> ClipResult:
+    """What a viewer shows ``delay_ms`` after each capture, against the recording then."""
+    delay_s = max(delay_ms, 0.0) / 1000.0
+    rots, roots = recon.shown(delay_s, predictor, predict_on)
+    pred_p, pred_q = recon.points(rots, roots)
+    true_p, true_q = _at_offset(recon.truth_p, recon.truth_q, delay_s * recon.fps)
+    n = true_p.shape[0]
+    pos_err = position_error_mm(pred_p[:n], true_p)  # (n, P)
+    rot_err = rotation_error_deg(pred_q[:n], true_q)
+    extra = dict(recon.extra)
+    if with_jitter:
+        extra["jitter_m_s3"] = jitter(pred_p[:n], recon.fps)
+    return ClipResult(
+        file=recon.file, kind=recon.kind, frames=n,
+        position_error_mm={name: float(pos_err[:, i].mean())
+                           for i, name in enumerate(recon.names)},
+        mean_error_mm=float(pos_err.mean()),
+        heldout_error_mm=(float(pos_err[:, recon.held].mean()) if recon.held
+                          else float("nan")),
+        rotation_error_deg=float(rot_err.mean()), solve_us_p50=recon.solve_us_p50,
+        lag_ms=recon.lag_ms, extra=extra)
+
+
+def jitter(positions: NDArray[np.float64], fps: float) -> float:
+    """Mean jerk (m/s^3) of trajectories (F, P, 3): the third difference per frame^3."""
+    if positions.shape[0] < 4:
+        return float("nan")
+    jerk = np.diff(positions, 3, axis=0) * fps ** 3
+    return float(np.linalg.norm(jerk, axis=-1).mean())
+
+
+def _evaluate(recon: Reconstruction, options: EvalOptions) -> ClipResult:
+    if options.delay_ms is None:
+        return score(recon, with_jitter=False)
+    return score(recon, options.delay_ms, options.predictor, options.predict_on)
+
+
+def reconstruct_vive(rec: ViveRecording, options: EvalOptions = EvalOptions(),
+                     rig: Rig | None = None, progress: Progress | None = None
+                     ) -> Reconstruction:
     rig = rig or build_rig(load_makehuman().skeleton)
     pos0 = {name: rec.positions[0, d] for d, name in enumerate(rec.devices)}
     rot0 = {name: rec.rotations[0, d] for d, name in enumerate(rec.devices)}
     cal = calibrate(rig, pos0, rot0, options.calibration)
-    targets = cal.targets(rec.positions[1:], rec.rotations[1:], rec.devices)
     solver = Solver(rig, options.solver, options.solver_options)
-    state = PoseBatch(cal.pose[None].copy(), cal.root[None].copy())
-    offsets = cal.offsets[None]
-    rots, roots, times = _solve_sequence(solver, targets, state, offsets, options.smoothing,
-                                         progress)
-    gq, gp = forward_kinematics(rig.skeleton, rots, roots, np.broadcast_to(
-        cal.offsets, (rots.shape[0], *cal.offsets.shape)))
-    pred_p, pred_q = cal.predict(gq, gp, rec.devices)
-    pos_err = position_error_mm(pred_p, rec.positions[1:])  # (F, D)
-    rot_err = rotation_error_deg(pred_q, rec.rotations[1:])
-    per_device = {name: float(pos_err[:, d].mean()) for d, name in enumerate(rec.devices)}
-    held = [rec.device(n) for n in HELDOUT_DEVICES if n in rec.devices]
+
+    def solve(positions: NDArray[np.float64], rotations: NDArray[np.float64],
+              progress: Progress | None = None) -> tuple[NDArray[np.float64],
+                                                         NDArray[np.float64],
+                                                         NDArray[np.float64]]:
+        targets = cal.targets(positions, rotations, rec.devices)
+        state = PoseBatch(cal.pose[None].copy(), cal.root[None].copy())
+        return _solve_sequence(solver, targets, state, cal.offsets[None], options.smoothing,
+                               progress)
+
+    def points(rots: NDArray[np.float64], roots: NDArray[np.float64]
+               ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        gq, gp = forward_kinematics(rig.skeleton, rots, roots, np.broadcast_to(
+            cal.offsets, (rots.shape[0], *cal.offsets.shape)))
+        return cal.predict(gq, gp, rec.devices)
+
+    def resolve(tp: NDArray[np.float64], tq: NDArray[np.float64]
+                ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        rots, roots, _ = solve(tp, tq)
+        return rots, roots
+
+    rots, roots, times = solve(rec.positions[1:], rec.rotations[1:], progress)
+    pred_p, _ = points(rots, roots)
     lags = [lag_frames(pred_p[:, rec.device(h)], rec.positions[1:, rec.device(h)])
             for h in ("left_hand", "right_hand")]
     drive = [rec.device(n) for n in DRIVING_DEVICES]
-    return ClipResult(
-        file=rec.source, kind="vive", frames=int(targets.shape[0]),
-        position_error_mm=per_device, mean_error_mm=float(pos_err.mean()),
-        heldout_error_mm=float(pos_err[:, held].mean()) if held else float("nan"),
-        rotation_error_deg=float(rot_err.mean()),
-        solve_us_p50=float(np.median(times) * 1e6),
+    driving_error = position_error_mm(pred_p[:, drive], rec.positions[1:, drive])
+    return Reconstruction(
+        file=rec.source, kind="vive", fps=rec.fps, names=list(rec.devices),
+        held=[rec.device(n) for n in HELDOUT_DEVICES if n in rec.devices],
+        rots=rots, roots=roots, truth_p=rec.positions[1:], truth_q=rec.rotations[1:],
+        tracker_p=rec.positions[1:], tracker_q=rec.rotations[1:], points=points,
+        resolve=resolve, solve_us_p50=float(np.median(times) * 1e6),
         lag_ms=float(np.mean(lags) / rec.fps * 1000.0),
-        extra={"driving_error_mm": float(pos_err[:, drive].mean()),
-               "scale": cal.scale})
+        extra={"driving_error_mm": float(driving_error.mean()), "scale": cal.scale})
+
+
+def evaluate_vive(rec: ViveRecording, options: EvalOptions = EvalOptions(),
+                  rig: Rig | None = None, progress: Progress | None = None) -> ClipResult:
+    return _evaluate(reconstruct_vive(rec, options, rig, progress), options)
 
 
 def _reference_pose(motion: Motion) -> NDArray[np.float64] | None:
@@ -142,40 +281,60 @@ def _reference_pose(motion: Motion) -> NDArray[np.float64] | None:
     return np.asarray(motion.rotations[motion.first_frame])
 
 
-def evaluate_bvh(motion: Motion, options: EvalOptions = EvalOptions(),
-                 progress: Progress | None = None) -> ClipResult:
+def reconstruct_bvh(motion: Motion, options: EvalOptions = EvalOptions(),
+                    progress: Progress | None = None) -> Reconstruction:
     if role_map(motion.skeleton)["pelvis"][0] != 0:
         # the avatar is rooted at the body: a static root above the pelvis is the world
         motion = drop_static_root(motion)
     frames = slice(motion.first_frame, motion.num_frames)
     rot = motion.rotations[frames]
     trans = motion.translations[frames]
-    F = rot.shape[0]
     sk = motion.skeleton.with_offsets(trans[0])
     rig = build_rig(sk, _reference_pose(motion))
     gt_q, gt_p = forward_kinematics(sk, rot, trans[:, 0], trans)
     eff = rig.effectors
-    targets = np.concatenate([gt_p[:, eff], gt_q[:, eff]], axis=-1)
     solver = Solver(rig, options.solver, options.solver_options)
-    # the avatar starts in its canonical pose, placed on the first frame's pelvis
-    state = PoseBatch.canonical(rig, 1)
-    rots, roots, times = _solve_sequence(solver, targets, state, sk.offsets[None],
-                                         options.smoothing, progress)
-    q, p = forward_kinematics(sk, rots, roots)
-    pos_err = position_error_mm(p, gt_p)  # (F, J)
-    rot_err = rotation_error_deg(q, gt_q)
+
+    def solve(tp: NDArray[np.float64], tq: NDArray[np.float64],
+              progress: Progress | None = None) -> tuple[NDArray[np.float64],
+                                                         NDArray[np.float64],
+                                                         NDArray[np.float64]]:
+        # the avatar starts in its canonical pose, placed on the first frame's pelvis
+        state = PoseBatch.canonical(rig, 1)
+        return _solve_sequence(solver, np.concatenate([tp, tq], axis=-1), state,
+                               sk.offsets[None], options.smoothing, progress)
+
+    def points(rots: NDArray[np.float64], roots: NDArray[np.float64]
+               ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        q, p = forward_kinematics(sk, rots, roots)
+        return p, q
+
+    def resolve(tp: NDArray[np.float64], tq: NDArray[np.float64]
+                ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        rots, roots, _ = solve(tp, tq)
+        return rots, roots
+
+    rots, roots, times = solve(gt_p[:, eff], gt_q[:, eff], progress)
+    p, _ = points(rots, roots)
     tracked = set(int(j) for j in eff)
-    held = [j for j in range(sk.num_joints) if j not in tracked]
-    per_joint = {name: float(pos_err[:, j].mean()) for j, name in enumerate(sk.names)}
     lags = [lag_frames(p[:, rig.role(h)], gt_p[:, rig.role(h)]) for h in ("hand_l", "hand_r")]
-    return ClipResult(
-        file=motion.source, kind="bvh", frames=F, position_error_mm=per_joint,
-        mean_error_mm=float(pos_err.mean()), heldout_error_mm=float(pos_err[:, held].mean()),
-        rotation_error_deg=float(rot_err.mean()), solve_us_p50=float(np.median(times) * 1e6),
+    return Reconstruction(
+        file=motion.source, kind="bvh", fps=motion.fps, names=list(sk.names),
+        held=[j for j in range(sk.num_joints) if j not in tracked], rots=rots, roots=roots,
+        truth_p=gt_p, truth_q=gt_q, tracker_p=gt_p[:, eff], tracker_q=gt_q[:, eff],
+        points=points, resolve=resolve, solve_us_p50=float(np.median(times) * 1e6),
         lag_ms=float(np.mean(lags) / motion.fps * 1000.0))
+
+
+def evaluate_bvh(motion: Motion, options: EvalOptions = EvalOptions(),
+                 progress: Progress | None = None) -> ClipResult:
+    return _evaluate(reconstruct_bvh(motion, options, progress), options)
 
 
 def summarize(clips: list[ClipResult]) -> dict[str, float]:
     keys = ("mean_error_mm", "heldout_error_mm", "rotation_error_deg", "solve_us_p50")
-    return {k: round(float(np.nanmean([getattr(c, k) for c in clips])), 2) for k in keys}
+    out = {k: round(float(np.nanmean([getattr(c, k) for c in clips])), 2) for k in keys}
+    if all("jitter_m_s3" in c.extra for c in clips):
+        out["jitter_m_s3"] = round(float(np.nanmean([c.extra["jitter_m_s3"] for c in clips])), 1)
+    return out
 

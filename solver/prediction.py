@@ -50,11 +50,12 @@ class PredictorParams:
     completely."""
 
     kind: str = "posecast"
-    window_s: float = 0.1  # long window: slow elements
-    short_window_s: float = 0.03  # short window: fast elements
-    accel_gain: float = 0.5
-    fast_speed: float = 1.0  # m/s
-    fast_turn: float = 6.0  # rad/s
+    window_s: float = 0.12  # the samples fitted (long window: slow elements)
+    decay_s: float = 0.02  # the fit weighs a sample exp(tau / decay_s): recent ones more
+    accel_gain: float = 0.0  # share of the fitted acceleration used
+    short_window_s: float = 0.06  # fast elements (with fast_speed / fast_turn)
+    fast_speed: float = np.inf  # m/s: inf = one window for all speeds
+    fast_turn: float = np.inf  # rad/s
     max_horizon_s: float = MAX_HORIZON_S
 
     def with_(self, **changes: object) -> PredictorParams:
@@ -68,7 +69,8 @@ BASELINES = {"velocity": PredictorParams(kind="velocity"),
              "slimevr": PredictorParams(kind="slimevr")}
 
 
-def fit_weights(tau: Array, h: float, accel_gain: float) -> tuple[Array, Array]:
+def fit_weights(tau: Array, h: float, accel_gain: float,
+                decay_s: float = np.inf) -> tuple[Array, Array]:
     """Weights (K,) of the least-squares fit through the newest sample: the offset at
     horizon ``h`` is sum_k w_k d_k, the velocity sum_k v_k d_k. ``tau`` (K,): the samples'
     times relative to the newest (< 0). One sample: constant velocity; two or more: a
@@ -78,7 +80,8 @@ def fit_weights(tau: Array, h: float, accel_gain: float) -> tuple[Array, Array]:
         v = np.array([1.0 / tau[0]])
         return h * v, v
     A = np.stack([tau, 0.5 * tau * tau], axis=1)
-    P = np.linalg.pinv(A)  # (2, K): d -> (v, a)
+    sw = np.sqrt(np.exp(tau / decay_s))[:, None]  # weighted least squares
+    P = np.linalg.pinv(A * sw) * sw.T  # (2, K): d -> (v, a)
     return h * P[0] + accel_gain * 0.5 * h * h * P[1], P[0]
 
 
@@ -97,22 +100,40 @@ def _lags(kind: str, window_s: float, dt: float) -> int:
     return max(1, round(window_s / dt))
 
 
-def _blend(params: PredictorParams, d: Array, tau: Array, h: float, fast: float) -> Array:
-    """Offset at horizon h from deltas d (K, ..., 3) at times tau (K,)."""
-    if params.kind == "velocity":
-        w, _ = fit_weights(tau[:1], h, 0.0)
-        return np.asarray(w[0] * d[0])
-    if params.kind == "slimevr":
-        w, _ = _slimevr_weights(tau, h)
-        return np.asarray(w[-1] * d[-1])
-    w_long, v_long = fit_weights(tau, h, params.accel_gain)
-    k_short = int(np.clip(round(params.short_window_s / -tau[0]), 1, len(tau)))
-    w_short, _ = fit_weights(tau[:k_short], h, params.accel_gain)
-    long = np.tensordot(w_long, d, axes=1)
-    short = np.tensordot(w_short, d[:k_short], axes=1)
-    speed = np.linalg.norm(np.tensordot(v_long, d, axes=1), axis=-1, keepdims=True)
-    beta = np.clip(speed / fast, 0.0, 1.0) if np.isfinite(fast) else 0.0
-    return np.asarray(long + beta * (short - long))
+@dataclass(frozen=True)
+class _Weights:
+    """One predictor's weights over the lags at one horizon, shared by rotations and
+    positions (computed once per call: the fits are the costly part for a few joints)."""
+
+    long: Array  # (K,) offset at the horizon
+    velocity: Array  # (K,) velocity, for the speed-adaptive blend
+    short: Array | None  # (k,) offset from the short window, None when not adaptive
+
+    @classmethod
+    def of(cls, params: PredictorParams, tau: Array, h: float) -> _Weights:
+        if params.kind == "velocity":
+            w, v = fit_weights(tau[:1], h, 0.0)
+            return cls(np.pad(w, (0, len(tau) - 1)), np.pad(v, (0, len(tau) - 1)), None)
+        if params.kind == "slimevr":
+            w, v = _slimevr_weights(tau, h)
+            return cls(w, v, None)
+        w, v = fit_weights(tau, h, params.accel_gain, params.decay_s)
+        if not (np.isfinite(params.fast_speed) or np.isfinite(params.fast_turn)):
+            return cls(w, v, None)
+        k_short = int(np.clip(round(params.short_window_s / -tau[0]), 1, len(tau)))
+        short, _ = fit_weights(tau[:k_short], h, params.accel_gain, params.decay_s)
+        return cls(w, v, short)
+
+    def offset(self, d: Array, fast: float) -> Array:
+        """Offset at the horizon from deltas d (K, ..., 3), blended towards the short
+        window's by speed when adaptive."""
+        used = np.flatnonzero(self.long)  # the baselines weigh one lag each
+        long = np.tensordot(self.long[used], d[used], axes=1)
+        if self.short is None or not np.isfinite(fast):
+            return np.asarray(long)
+        short = np.tensordot(self.short, d[:len(self.short)], axes=1)
+        speed = np.linalg.norm(np.tensordot(self.velocity, d, axes=1), axis=-1, keepdims=True)
+        return np.asarray(long + np.clip(speed / fast, 0.0, 1.0) * (short - long))
 
 
 def _rotation_deltas(q: Array, lags: int) -> Array:
@@ -157,8 +178,9 @@ class SequenceDeltas:
         h = min(h, params.max_horizon_s)
         K = min(_lags(params.kind, params.window_s, self.dt), self.dq.shape[0])
         tau = -self.dt * np.arange(1, K + 1)
-        rv = _blend(params, self.dq[:K], tau, h, params.fast_turn)
-        dp = _blend(params, self.dp[:K], tau, h, params.fast_speed)
+        w = _Weights.of(params, tau, h)
+        rv = w.offset(self.dq[:K], params.fast_turn)
+        dp = w.offset(self.dp[:K], params.fast_speed)
         return R.normalize(R.mul(self.rotations, R.from_rotvec(rv))), self.positions + dp
 
 
@@ -193,9 +215,12 @@ def predict_latest(times: Array, rotations: Array, positions: Array, t: float,
     if np.any(tau >= 0.0):
         return rotations[-1], positions[-1]
     q0, p0 = rotations[-1], positions[-1]
-    past_q = rotations[-2 - np.arange(K)]
-    dq = R.to_rotvec(R.mul(R.conjugate(q0)[None], past_q))
+    w = _Weights.of(params, tau, h)
+    # only the lags the weights use (the baselines' one) are worth a logarithm
+    lags = np.arange(K) if w.short is not None else np.flatnonzero(w.long)
+    dq = np.zeros((K, *q0.shape[:-1], 3))
+    dq[lags] = R.to_rotvec(R.mul(R.conjugate(q0)[None], rotations[-2 - lags]))
     dp = positions[-2 - np.arange(K)] - p0[None]
-    rv = _blend(params, dq, tau, h, params.fast_turn)
-    off = _blend(params, dp, tau, h, params.fast_speed)
+    rv = w.offset(dq, params.fast_turn)
+    off = w.offset(dp, params.fast_speed)
     return R.normalize(R.mul(q0, R.from_rotvec(rv))), p0 + off
