@@ -66,6 +66,8 @@ class ClipResult:
     solve_us_p50: float
     lag_ms: float
     extra: dict[str, float] = field(default_factory=dict)
+    # the worst 1% of frames: each device's (joint's) 99th percentile error over frames
+    p99_error_mm: dict[str, float] = field(default_factory=dict)
 
     def as_json(self) -> dict[str, object]:
         out: dict[str, object] = {
@@ -78,6 +80,11 @@ class ClipResult:
             "lag_ms": round(self.lag_ms, 2)}
         if "jitter_m_s3" in self.extra:  # a delayed run (--delay-ms) adds what was shown
             out["jitter_m_s3"] = round(self.extra["jitter_m_s3"], 1)
+        if self.p99_error_mm:  # tails: the worst 1% of frames beside the means
+            out["p99_error_mm"] = {k: round(v, 2) for k, v in self.p99_error_mm.items()}
+            out["p99_frame_error_mm"] = round(self.extra["p99_frame_error_mm"], 2)
+        if "rotation_error_tracked_deg" in self.extra:
+            out["rotation_error_tracked_deg"] = round(self.extra["rotation_error_tracked_deg"], 2)
         return out
 
 
@@ -146,6 +153,9 @@ class Reconstruction:
     lag_ms: float
     extra: dict[str, float] = field(default_factory=dict)
     _deltas: SequenceDeltas | None = None
+    # BVH: the joints on the paths from the root to the trackers, whose rotations the
+    # trackers constrain (MPJRE over them: rotation_error_tracked_deg)
+    chain: list[int] = field(default_factory=list)
 
     def deltas(self, lags: int) -> SequenceDeltas:
         """The solved rotations' and roots' deltas, computed once for every predictor."""
@@ -193,6 +203,9 @@ def score(recon: Reconstruction, delay_ms: float = 0.0,
     pos_err = position_error_mm(pred_p[:n], true_p)  # (n, P)
     rot_err = rotation_error_deg(pred_q[:n], true_q)
     extra = dict(recon.extra)
+    extra["p99_frame_error_mm"] = float(np.percentile(pos_err.mean(axis=1), 99))
+    if recon.chain:
+        extra["rotation_error_tracked_deg"] = float(rot_err[:, recon.chain].mean())
     if with_jitter:
         extra["jitter_m_s3"] = jitter(pred_p[:n], recon.fps)
     return ClipResult(
@@ -203,7 +216,9 @@ def score(recon: Reconstruction, delay_ms: float = 0.0,
         heldout_error_mm=(float(pos_err[:, recon.held].mean()) if recon.held
                           else float("nan")),
         rotation_error_deg=float(rot_err.mean()), solve_us_p50=recon.solve_us_p50,
-        lag_ms=recon.lag_ms, extra=extra)
+        lag_ms=recon.lag_ms, extra=extra,
+        p99_error_mm={name: float(np.percentile(pos_err[:, i], 99))
+                      for i, name in enumerate(recon.names)})
 
 
 def jitter(positions: NDArray[np.float64], fps: float) -> float:
@@ -323,7 +338,17 @@ def reconstruct_bvh(motion: Motion, options: EvalOptions = EvalOptions(),
         held=[j for j in range(sk.num_joints) if j not in tracked], rots=rots, roots=roots,
         truth_p=gt_p, truth_q=gt_q, tracker_p=gt_p[:, eff], tracker_q=gt_q[:, eff],
         points=points, resolve=resolve, solve_us_p50=float(np.median(times) * 1e6),
-        lag_ms=float(np.mean(lags) / motion.fps * 1000.0))
+        lag_ms=float(np.mean(lags) / motion.fps * 1000.0), chain=tracked_chain(sk.parents, eff))
+
+
+def tracked_chain(parents: NDArray[np.integer], trackers: NDArray[np.integer]) -> list[int]:
+    """The joints from the root to each tracker's joint, trackers included."""
+    on: set[int] = set()
+    for j in (int(t) for t in trackers):
+        while j >= 0 and j not in on:
+            on.add(j)
+            j = int(parents[j])
+    return sorted(on)
 
 
 def evaluate_bvh(motion: Motion, options: EvalOptions = EvalOptions(),
@@ -336,5 +361,18 @@ def summarize(clips: list[ClipResult]) -> dict[str, float]:
     out = {k: round(float(np.nanmean([getattr(c, k) for c in clips])), 2) for k in keys}
     if all("jitter_m_s3" in c.extra for c in clips):
         out["jitter_m_s3"] = round(float(np.nanmean([c.extra["jitter_m_s3"] for c in clips])), 1)
+    # tails and tracked-chain rotations, averaged over the clips that have them
+    for key in ("p99_frame_error_mm", "rotation_error_tracked_deg"):
+        have = [c.extra[key] for c in clips if key in c.extra]
+        if have:
+            out[key] = round(float(np.mean(have)), 2)
     return out
+
+
+def summarize_p99(clips: list[ClipResult]) -> dict[str, float]:
+    """Each Vive device's p99 error (mm), averaged over the Vive clips."""
+    vive = [c for c in clips if c.kind == "vive" and c.p99_error_mm]
+    names = sorted({n for c in vive for n in c.p99_error_mm})
+    return {n: round(float(np.mean([c.p99_error_mm[n] for c in vive if n in c.p99_error_mm])), 2)
+            for n in names}
 
