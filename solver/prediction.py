@@ -8,8 +8,8 @@ rotation, a root's or a device's position), batched over all of them at once:
   seconds earlier); for rotations ``d_k = log(q_0^-1 q_{-k})``, a rotation vector in the
   newest sample's frame, so positions and rotations share the same linear maths;
 - a polynomial through the newest sample, ``d(tau) = v tau + a tau^2 / 2``, fitted to the
-  d_k by least squares, gives the offset ``v h + g a h^2 / 2`` at horizon h (g: how much of
-  the fitted acceleration is trusted);
+  d_k by least squares weighted exp(tau / decay), gives the offset ``v h + g a h^2 / 2`` at
+  horizon h (g: how much of the fitted acceleration is trusted);
 - the prediction is ``x_0 + offset`` (``q_0 exp(offset)`` for rotations).
 
 Kinds (``PredictorParams.kind``):
@@ -18,10 +18,11 @@ Kinds (``PredictorParams.kind``):
   anchor; SteamVR's "seconds to photons" prediction of device poses works from velocity).
 - ``slimevr``: SlimeVR's prediction filter: the average of the last frame-to-frame deltas
   (its buffer holds 6), carried over the horizon.
-- ``posecast``: the fit above over a window, speed-adaptive in the spirit of the 1-euro
-  filter: slow elements (where noise dominates) use a long window, fast ones (where lag
-  dominates) a short one, blended by speed; acceleration is damped (``accel_gain`` < 1),
-  which also keeps a reversing motion from being flung past its turning point.
+- ``posecast``: the fit above over a window, recent samples weighted most; optionally
+  speed-adaptive in the spirit of the 1-euro filter (slow elements, where noise dominates,
+  a long window; fast ones, where lag dominates, a short one) and with damped
+  acceleration. Chosen by leave-one-clip-out (``posecast bench prediction``), the shipped
+  constants use neither: on these recordings both cost accuracy and added shaking.
 
 Pure: numpy in, numpy out. ``predict_sequence`` scores whole recordings (the eval);
 ``predict_latest`` carries one avatar's newest pose forward (the viewer).
