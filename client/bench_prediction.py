@@ -158,6 +158,15 @@ def bench_prediction(files: list[Path], progress: bool = True) -> dict[str, obje
                                  b0, bd))
             rows.append(_row(kind, d, "posecast (leave-one-out)",
                              [score(recons[c], d, settings[loo[c]]) for c in idx], b0, bd))
+    per_clip = []  # 50 ms, leave-one-out: does it hold on runs, kicks, dance?
+    for c, r in enumerate(recons):
+        ahead = score(r, FIT_DELAY_MS, settings[loo[c]]).mean_error_mm
+        late, at0 = base[FIT_DELAY_MS][c].mean_error_mm, base[0.0][c].mean_error_mm
+        per_clip.append({"file": Path(r.file).name, "set": r.kind,
+                         "error_0_mm": round(at0, 2), "delayed_mm": round(late, 2),
+                         "predicted_mm": round(ahead, 2),
+                         "position_left": round((ahead - at0) / (late - at0), 3)
+                         if late > at0 else None})
     tick("score")
     where = []  # joints (the viewer) against trackers (before the server's solve)
     for on in ("joints", "trackers"):
@@ -176,7 +185,7 @@ def bench_prediction(files: list[Path], progress: bool = True) -> dict[str, obje
             "shipped_match_fit": _constants(shipped) == _constants(DEFAULT),
             "leave_one_out": [{"file": Path(r.file).name, "constants": _constants(settings[i])}
                               for r, i in zip(recons, loo, strict=True)],
-            "rows": rows, "where": where}
+            "rows": rows, "where": where, "clips_at_50_ms": per_clip}
 
 
 def _constants(p: PredictorParams) -> dict[str, object]:
@@ -212,6 +221,11 @@ def format_prediction_table(doc: dict[str, object]) -> str:
     out += [fmt(line) for line in lines[1:]]
     out += ["", "where to predict, at 50 ms with the shipped constants:"]
     out += [fmt(cells(r)) for r in where]
+    clips = doc["clips_at_50_ms"]
+    assert isinstance(clips, list)
+    out += ["", "each clip at 50 ms, leave-one-out (share left):",
+            "  " + ", ".join(f"{Path(str(c['file'])).stem} {c['position_left']}"
+                             for c in clips)]
     out += ["", "left: share of the error the delay adds that is left "
             "((E - E_0) / (E_delayed - E_0)); jerk: mean jerk of what is shown",
             f"constants fitted on every clip: {_short(doc['constants'])}"]

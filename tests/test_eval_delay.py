@@ -98,6 +98,16 @@ def test_bench_prediction_table(capsys: pytest.CaptureFixture[str]) -> None:
     assert at50["none"]["position_left"] == 1.0
     assert at50["posecast (leave-one-out)"]["position_left"] < 0.5
     assert len(doc["leave_one_out"]) == 2
+    clips = doc["clips_at_50_ms"]
+    assert isinstance(clips, list) and [c["set"] for c in clips] == ["vive", "bvh"]
     text = format_prediction_table(doc)
     assert "posecast on trackers" in text and "jerk m/s3" in text
     json.dumps(doc)  # it is one JSON document
+
+
+def test_bench_prediction_without_recordings(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                             capsys: pytest.CaptureFixture[str]) -> None:
+    monkeypatch.chdir(tmp_path)  # no ../shared/data from here
+    assert main(["bench", "prediction"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "no recordings" in err
