@@ -4,6 +4,7 @@ the renderer and in a headless viewer watching a real player over a real socket.
 from __future__ import annotations
 
 import asyncio
+import gc
 import json
 import math
 import subprocess
@@ -129,8 +130,7 @@ def test_headless_viewer_draws_the_marker_on_a_live_player(egl: None,
         assert score > 0.95, path
 
 
-def test_latency_video_follows_the_rendered_marker(renderer: Renderer,
-                                                  tmp_path: Path) -> None:
+def test_latency_video_follows_the_rendered_marker(egl: None, tmp_path: Path) -> None:
     """Film posecast itself, synthetically: on the left a textured tracker swinging, on
     the right the viewer's frames (the avatar carried by the same swing, --marker on its
     right hand) rendered at 90 Hz and showing each pose 10 camera frames late. KCF must
@@ -138,6 +138,10 @@ def test_latency_video_follows_the_rendered_marker(renderer: Renderer,
     on average with swing_video's refresh times)."""
     delay, fps, hz, frames = 10, 240.0, 90.0, 720
     x = swing(frames + delay)
+    # a context of its own, made current as it is made: other tests' contexts (the live
+    # viewer's) may have been current in this thread, and collected ones may release
+    gc.collect()
+    renderer = Renderer.standalone(W, H)
     m = renderer.mesh
     avatar = template_avatar(m)
     rest = np.tile([0.0, 0.0, 0.0, 1.0], (m.skeleton.num_joints, 1))
@@ -174,6 +178,8 @@ def test_latency_video_follows_the_rendered_marker(renderer: Renderer,
     finally:
         writer.release()
         overlay.release()
+        renderer.release()
+        renderer.ctx.release()
     result = subprocess.run([sys.executable, "-m", "posecast.client.cli", "latency-video",
                              str(path), "--tracker-box", boxes[0], "--avatar-box", boxes[1],
                              "--json"], capture_output=True, text=True, timeout=300)
