@@ -125,6 +125,9 @@ def _parser() -> argparse.ArgumentParser:
     ev.add_argument("--map", type=arg.existing_file, default=None, metavar="FILE",
                     help="BVH joint name -> role (.json or .toml) for rigs whose names and "
                          "shape are not recognised, e.g. {\"Bone_7\": \"forearm_l\"}")
+    ev.add_argument("--cross-validate", action="store_true",
+                    help="leave one clip out: score each Vive recording with the calibration "
+                         "constants fitted on the others (at least two recordings)")
     ev.add_argument("--json", action="store_true", help="print one JSON document")
 
     sub.add_parser("warm", help="compile the solver kernels now, into numba's on-disk cache "
@@ -439,6 +442,11 @@ def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
         return 0
     if args.command in ("demo", "bench"):  # before their processes start, each would compile
         warm_kernels(notice)
+    if args.command == "eval" and args.cross_validate:
+        from posecast.client.crossval_command import run_cross_validate
+
+        return run_cross_validate(args.files, args.solver, args.max_iterations,
+                                  args.calibration, args.smoothing, args.json)
     if args.command == "eval":
         from posecast.client.eval_command import run_eval
 
