@@ -10,8 +10,8 @@ from collections.abc import Awaitable, Callable
 
 import pytest
 from conftest import serving
-from websockets.asyncio.client import connect
 from test_server import calibration, joined, receive, receive_type, tracker
+from websockets.asyncio.client import connect
 
 from posecast.protocol import (
     PROTOCOL_VERSION,
