@@ -769,13 +769,17 @@ async def _calibrate_and_stream(player: Player, delay: float, seconds: float | N
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from posecast.client.demo import run_demo
+    from posecast.client.demo import DemoError, run_demo
     from posecast.client.latency import format_latency_table
 
-    result = run_demo(args.players, args.spectators, args.seconds, solver=args.solver,
-                      render=args.render, render_mode=args.render_mode,
-                      busy=None if args.busy_poll else False,
-                      helper=None if args.helper else False, network=args.network)
+    try:
+        result = run_demo(args.players, args.spectators, args.seconds, solver=args.solver,
+                          render=args.render, render_mode=args.render_mode,
+                          busy=None if args.busy_poll else False,
+                          helper=None if args.helper else False, network=args.network)
+    except DemoError as err:  # e.g. a link whose stalls make the server refuse frames
+        print(f"posecast demo: {err}", file=sys.stderr)
+        return 1
     if args.json:
         print(json.dumps(result.as_json()))
     else:

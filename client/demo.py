@@ -11,6 +11,7 @@ With a network spec, every connection goes through the emulator (``network``), b
 from __future__ import annotations
 
 import asyncio
+import itertools
 import multiprocessing as mp
 import os
 from collections.abc import Callable, Coroutine, Iterator
@@ -48,6 +49,13 @@ T = TypeVar("T")
 JOIN_TIMEOUT = 60.0
 STOP_TIMEOUT = 60.0
 HEADSET_HZ = 90.0  # an HTC Vive's rate: players send what their headset samples
+# players whose display error is measured: a few say it as well as many, and the work
+# after the session (and the samples sent back) stays small however many play
+MEASURED_PLAYERS = 4
+
+
+class DemoError(RuntimeError):
+    """The session could not run to its end (a player refused or gone): one line."""
 
 
 @dataclass
@@ -235,14 +243,16 @@ def _spot(i: int, per_row: int = 4, spacing: float = 1.5) -> tuple[float, float]
 async def run_players(url: str, players: int, seconds: float, motion: Path,
                       recorders: list[RecordingSource] | None = None) -> list[PlayerStats]:
     """N players replaying the motion, all on one schedule (headsets tick together).
-    ``recorders``: filled with each player's source, which keeps what it captured."""
+    ``recorders``: filled with the sources of the first MEASURED_PLAYERS, which keep
+    what they captured."""
     sources: list[BvhSource | RecordingSource] = [
         BvhSource(motion, loop=True, rate_hz=HEADSET_HZ, offset=_spot(i), start_frame=37 * i,
                   smooth=True)
         for i in range(players)]
     if recorders is not None:
-        sources = [RecordingSource(s) for s in sources]
-        recorders.extend(sources)  # type: ignore[arg-type]
+        recording = [RecordingSource(s) for s in sources[:MEASURED_PLAYERS]]
+        sources[:len(recording)] = recording
+        recorders.extend(recording)
     ticker = Ticker(sources[0].rate_hz) if sources else None
     try:
         return list(await asyncio.gather(*(
@@ -258,9 +268,14 @@ def _players_process(pipe: Connection, url: str, players: int, seconds: float,
     pin_to_cores("players", cores)
     pipe.recv()  # go: the spectators are in the room
     recorders: list[RecordingSource] = []
-    stats = _run(run_players(url, players, seconds, motion, recorders))
-    pipe.send([(p.frames_sent, dict(p.errors), r.log(p.avatar_id))
-               for p, r in zip(stats, recorders, strict=True)])
+    try:
+        stats = _run(run_players(url, players, seconds, motion, recorders))
+    except SessionError as err:  # e.g. refused frames: a link's stall let too many pile up
+        pipe.send(("error", str(err)))
+        return
+    logs = [r.log(p.avatar_id) for p, r in zip(stats, recorders, strict=False)]
+    pipe.send([(p.frames_sent, dict(p.errors), log)
+               for p, log in itertools.zip_longest(stats, logs)])
 
 
 class _DemoSpectator(Spectator):
@@ -316,6 +331,7 @@ async def run_clients(url: str, players: int, spectators: int, seconds: float,
     process = ctx.Process(target=_players_process, args=(child, url, players, seconds,
                                                          motion, cores), daemon=True)
     process.start()
+    child.close()  # the child's end is the child's: its exit is then our EOF
     viewer = (HeadlessViewerProcess(url, ROOM, render, mode=Mode(render_mode))
               if render is not None else None)
     if viewer is not None:  # a viewer of its own process: drawing holds the GIL
@@ -338,7 +354,12 @@ async def run_clients(url: str, players: int, spectators: int, seconds: float,
             loop.remove_reader(pipe.fileno())
         # the loop made the pipe non-blocking; the players' capture logs span many reads
         os.set_blocking(pipe.fileno(), True)
-        player_stats = pipe.recv()
+        try:
+            player_stats = pipe.recv()
+        except EOFError:
+            raise DemoError("the players' process ended without a report") from None
+        if isinstance(player_stats, tuple):  # ("error", why)
+            raise DemoError(f"a player was disconnected: {player_stats[1]}")
         process.join(10)
     finally:
         if viewer is not None:

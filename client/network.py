@@ -17,6 +17,7 @@ optionally ``,seed=N``. ``LinkModel`` is the pure part (when a chunk read at t i
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
 import multiprocessing as mp
 import random
@@ -280,9 +281,11 @@ class ProxyProcess:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self._pipe.send("stop")
-        if self._pipe.poll(30):
-            self.stats = self._pipe.recv()
+        with contextlib.suppress(OSError):  # it is gone already: nothing to stop
+            self._pipe.send("stop")
+        with contextlib.suppress(EOFError, OSError):  # gone: no counts
+            if self._pipe.poll(30):
+                self.stats = self._pipe.recv()
         self._process.join(10)
         if self._process.is_alive():
             self._process.kill()

@@ -47,3 +47,22 @@ def test_demo_over_an_emulated_link_reports_the_display_error_of_each_mode() -> 
     # spreads arrivals over ~40 ms, and a capture interval (11 ms) comes on top (load
     # only adds jitter; tests/test_network.py compares a calm and a jittery link)
     assert far["playout_delay_ms"]["p50"] >= 25.0
+
+
+def test_a_player_the_server_disconnects_ends_the_demo_in_one_line() -> None:
+    """A 1 s stall piles up 90 frames of a 90 Hz player: the server's frame budget (60 at
+    once) refuses the rest, and a player refused more than 10 times a second is closed.
+    The demo says so in one line (after the player's own warnings), exit 1."""
+    done = subprocess.run([sys.executable, "-m", "posecast.client.cli", "demo",
+                           "--players", "1", "--spectators", "1", "--seconds", "8",
+                           "--network", "20ms,stall=1s/1s", "--json"],
+                          capture_output=True, text=True, timeout=WAIT,
+                          env={**os.environ, "PYTHONWARNINGS": "ignore"})
+    assert done.returncode == 1, done.stderr
+    assert done.stdout == ""
+    last = done.stderr.strip().splitlines()[-1]
+    # why, as the player heard it: the server's close (too many errors: rate_limited),
+    # or the connection lost when that close is itself stalled on the way back
+    assert last.startswith("posecast demo: a player was disconnected: "), done.stderr
+    assert "rate_limited" in done.stderr
+    assert "Traceback" not in done.stderr
