@@ -286,6 +286,11 @@ def _parser() -> argparse.ArgumentParser:
     dm.add_argument("--no-helper", dest="helper", action="store_false",
                     help="the server solves alone (by default, busy polling, a helper "
                          "thread spins on the clients' core and takes part of each batch)")
+    dm.add_argument("--network", type=arg.network, default=None, metavar="SPEC",
+                    help="put an emulated link between every client and the server, "
+                         "each direction delayed: DELAY[+-JITTER][,stall=HOLD/EVERY]"
+                         "[,seed=N], e.g. 40ms+-10ms or 40ms+-10ms,stall=200ms/5s "
+                         "(default: loopback)")
     dm.add_argument("--json", action="store_true", help="print one JSON document")
 
     lv = sub.add_parser("latency-video", help="end-to-end latency from a video of the "
@@ -299,11 +304,6 @@ def _parser() -> argparse.ArgumentParser:
     lv.add_argument("video", type=arg.existing_file, metavar="VIDEO",
                     help="the video (a phone's slow motion, 240 fps, is best)")
     lv.add_argument("--tracker-box", type=arg.box, default=None, metavar="X,Y,W,H",
-    dm.add_argument("--network", type=arg.network, default=None, metavar="SPEC",
-                    help="put an emulated link between every client and the server, "
-                         "each direction delayed: DELAY[+-JITTER][,stall=HOLD/EVERY]"
-                         "[,seed=N], e.g. 40ms+-10ms or 40ms+-10ms,stall=200ms/5s "
-                         "(default: loopback)")
                     help="the real tracker (or a marker on it) in the first frame, pixels")
     lv.add_argument("--avatar-box", type=arg.box, default=None, metavar="X,Y,W,H",
                     help="the avatar's marker on the screen in the first frame, pixels")
@@ -785,9 +785,9 @@ def _demo(args: argparse.Namespace) -> int:
     else:
         print(result.format_counts())
         print(format_latency_table(result.latency.summary(), result.latency.counts()))
+        print(result.format_display_error())
     return 0
 
 
 if __name__ == "__main__":
     sys.exit(main())
-        print(result.format_display_error())
