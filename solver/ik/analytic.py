@@ -10,7 +10,11 @@
   forearm (shin) where the hand's (foot's) orientation says it should be with a neutral
   wrist (ankle): the paper's subjects complained of twisted elbows, which is what a
   position-only solver gives; a bent arm's elbow then turns a tenth of the way down to
-  the lowest point of its circle (ELBOW_DOWN_SHARE). The forearm takes the hand's twist
+  the lowest point of its circle (ELBOW_DOWN_SHARE). Both are continuous through the
+  poses where they lose their meaning (no flips in a frame): a neutral-wrist elbow near
+  the shoulder-wrist line is trusted in proportion to its distance from it (SWIVEL_TRUST,
+  else the last frame's swivel stays), and the pull down fades out towards a vertical
+  line and towards the top of the circle (DOWN_FADE). The forearm takes the hand's twist
   (pronation), the wrist and ankle the rest; a nearly straight arm instead keeps the
   forearm's twist and turns the hand with the shoulder (its elbow cannot tell the two
   apart). The clavicles stay neutral (CLAVICLE_SHARE).
@@ -68,6 +72,12 @@ BEND_HI = math.radians(45.0)
 # elbow is turned down from where a neutral wrist puts it: the Vive forearm trackers ask
 # for more, the optical mocap for about this much (docs/performance.md).
 ELBOW_DOWN_SHARE = 0.1
+# How far from the shoulder-wrist line (share of the elbow circle's radius) the elbow a
+# neutral wrist implies must lie for its swivel to be taken whole; nearer, the swivel
+# keeps the last frame's in proportion (no flips through the line).
+SWIVEL_TRUST = 0.5
+# Swivel (radians) before the top of the elbow's circle over which the pull down fades.
+DOWN_FADE = math.radians(30.0)
 
 
 @njit(cache=True)
@@ -206,19 +216,34 @@ def _swivel(Gu, offsets, pre, post, canon, mid, end, tq, dvec, nx, ny, nz,
     g = trotate(tmul(tq, tconj(row4(canon, end))), row3(offsets, end))
     # the swivel of the neutral-wrist elbow W - g about the line (every point of the
     # circle is as near when that elbow lies on the line: the angle then comes out 0)
-    return _perp_angle(E[0], E[1], E[2], dvec[0] - g[0], dvec[1] - g[1], dvec[2] - g[2],
-                       nx, ny, nz)
+    wx, wy, wz = dvec[0] - g[0], dvec[1] - g[1], dvec[2] - g[2]
+    psi = _perp_angle(E[0], E[1], E[2], wx, wy, wz, nx, ny, nz)
+    # near the line that elbow's direction about it is noise and flipped the elbow to
+    # the far side of its circle in a frame: trust it in proportion to its distance
+    # from the line (SWIVEL_TRUST of the circle's radius), else keep the last swivel
+    dw = wx * nx + wy * ny + wz * nz
+    off2 = wx * wx + wy * wy + wz * wz - dw * dw
+    trust = math.sqrt(max(off2, 0.0) / (SWIVEL_TRUST ** 2 * (e2 - de * de)))
+    return psi * min(trust, 1.0)
 
 
 @njit(cache=True)
 def _below(Gu, offsets, mid, psi, nx, ny, nz):
     """Signed angle about the shoulder-wrist line n from the lowest point of the elbow
-    circle to the elbow turned by psi (0 when n is nearly vertical: no lowest point)."""
-    if abs(ny) > 0.95:
+    circle to the elbow turned by psi (fading to 0 as n turns vertical: no lowest point)."""
+    # faded out towards a vertical line, not cut: a cut turned the elbow in one frame
+    fade = min(max((0.99 - abs(ny)) / 0.19, 0.0), 1.0)
+    if fade == 0.0:
         return 0.0
     E = trotate(Gu, row3(offsets, mid))
     Er = trotate(taxis_angle(nx, ny, nz, psi), E)
-    return _perp_angle(0.0, -1.0, 0.0, Er[0], Er[1], Er[2], nx, ny, nz)
+    b = _perp_angle(0.0, -1.0, 0.0, Er[0], Er[1], Er[2], nx, ny, nz)
+    # an elbow near the top of its circle has no "down" side: the pull fades to 0 over
+    # the last DOWN_FADE of the circle instead of flipping sign at +-180 deg (which
+    # turned the elbow ~30 deg in a frame)
+    if abs(b) > math.pi - DOWN_FADE:
+        b = math.copysign((math.pi - DOWN_FADE) * (math.pi - abs(b)) / DOWN_FADE, b)
+    return fade * b
 
 
 @njit(cache=True)
