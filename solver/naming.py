@@ -151,8 +151,9 @@ def roles(skeleton: Skeleton, style: str | None = None) -> dict[str, list[int]]:
             return _complete(skeleton, found, explicit)
         except SkeletonError as err:
             problems.append(f"shape: {err}")
-    raise SkeletonError(f"cannot map this skeleton onto the canonical joints: "
-                        f"{problems[0]}; {problems[-1]}; map its joints with --map FILE")
+    shown = "; ".join(dict.fromkeys((problems[0], problems[-1])))  # best names, shape
+    raise SkeletonError(f"cannot map this skeleton onto the canonical joints: {shown}; "
+                        f"map its joints with --map FILE")
 
 
 def detect_style(skeleton: Skeleton) -> str:
