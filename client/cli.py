@@ -446,7 +446,11 @@ def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
         from posecast.client.crossval_command import run_cross_validate
 
         return run_cross_validate(args.files, args.solver, args.max_iterations,
-                                  args.calibration, args.smoothing, args.json)
+                                  args.calibration, args.smoothing, args.json,
+                                  given=[flag for flag, on in (
+                                      ("--delay-ms", args.delay_ms is not None),
+                                      ("--predict", args.predict),
+                                      ("--map", args.map is not None)) if on])
     if args.command == "eval":
         from posecast.client.eval_command import run_eval
 

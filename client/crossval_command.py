@@ -25,7 +25,10 @@ def _usage(msg: str) -> int:
 
 
 def run_cross_validate(files: list[Path], solver: str, iterations: list[int] | None,
-                       calibration: str, smoothing: float, as_json: bool) -> int:
+                       calibration: str, smoothing: float, as_json: bool,
+                       given: list[str] | None = None) -> int:
+    if given:  # options of eval that cross-validation does not take
+        return _usage(f"scores recordings as solved: {given[0]} does not go with it")
     if iterations is not None and len(iterations) > 1:
         return _usage("takes one --max-iterations, not several")
     if calibration != "fit":

@@ -81,7 +81,7 @@ def _cli(*args: str) -> subprocess.CompletedProcess[str]:
 def test_cross_validate_needs_two_vive_recordings() -> None:
     walk = str(ROOT / "client" / "assets" / "example_walk_vive.csv")
     bvh = str(ROOT / "client" / "assets" / "cmu_02_01_walk.bvh")
-    for args in ((walk,), (walk, bvh)):
+    for args in ((walk,), (walk, bvh), (walk, walk, "--delay-ms", "50")):
         out = _cli(*args)
         assert out.returncode == 2
         assert out.stderr.count("\n") == 1 and "--cross-validate" in out.stderr
