@@ -291,6 +291,8 @@ def _parser() -> argparse.ArgumentParser:
                          "each direction delayed: DELAY[+-JITTER][,stall=HOLD/EVERY]"
                          "[,seed=N], e.g. 40ms+-10ms or 40ms+-10ms,stall=200ms/5s "
                          "(default: loopback)")
+    dm.add_argument("--limit", action="append", default=[], type=_limit, metavar="NAME=VALUE",
+                    help="override one of the server's limits, as serve --limit does")
     dm.add_argument("--json", action="store_true", help="print one JSON document")
 
     lv = sub.add_parser("latency-video", help="end-to-end latency from a video of the "
@@ -656,12 +658,12 @@ def _serve(args: argparse.Namespace) -> int:
     except ValueError as err:  # limits that do not go together (see _limit)
         print(f"posecast serve: {err} (--limit, or [limits] in --config; see posecast serve "
               "--help)", file=sys.stderr)
-        return 2
+        raise SystemExit(2) from None  # a usage error, as argparse ends one
     try:  # before the solver warms up: a bad certificate is told at once
         tls = _server_tls(args)
     except ValueError as err:
         print(f"posecast serve: {err} (see posecast serve --help)", file=sys.stderr)
-        raise SystemExit(2) from None  # a usage error, as argparse ends one
+        return 2
     install_fast_loop()
     session = Session(tokens=tokens, solver=args.solver, busy=args.busy_poll,
                       helper=None if args.helper else False,
@@ -777,10 +779,16 @@ def _demo(args: argparse.Namespace) -> int:
     from posecast.client.latency import format_latency_table
 
     try:
+        limits = ServerLimits().with_text(args.limit)
+    except ValueError as err:  # limits that do not go together (see _limit)
+        print(f"posecast demo: {err} (--limit)", file=sys.stderr)
+        raise SystemExit(2) from None
+    try:
         result = run_demo(args.players, args.spectators, args.seconds, solver=args.solver,
                           render=args.render, render_mode=args.render_mode,
                           busy=None if args.busy_poll else False,
-                          helper=None if args.helper else False, network=args.network)
+                          helper=None if args.helper else False, network=args.network,
+                          limits=limits)
     except DemoError as err:  # e.g. a link whose stalls make the server refuse frames
         print(f"posecast demo: {err}", file=sys.stderr)
         return 1

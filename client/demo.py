@@ -39,6 +39,7 @@ from posecast.client.spectator import Spectator, SpectatorStats
 from posecast.client.viewer.headless import HeadlessViewerProcess
 from posecast.client.viewer.interpolation import Mode
 from posecast.protocol import AvatarBatch, AvatarRoster, ClockEstimator
+from posecast.server.limits import ServerLimits
 from posecast.solver.readers.gltf import load_makehuman
 from posecast.solver.rig import Rig, build_rig
 
@@ -171,7 +172,7 @@ def pin_to_cores(role: str, cores: Cores) -> None:
 
 
 def _serve_process(pipe: Connection, solver: str, cores: Cores, busy: bool,
-                   helper: bool | None) -> None:
+                   helper: bool | None, limits: ServerLimits | None = None) -> None:
     """The server process: report the port, serve until told to stop, report metrics."""
     from posecast.server.app import Session, install_fast_loop, run_server
 
@@ -182,7 +183,7 @@ def _serve_process(pipe: Connection, solver: str, cores: Cores, busy: bool,
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
         loop.add_reader(pipe.fileno(), stop.set)  # any message from the parent: stop
-        session = Session(solver=solver, busy=busy, helper=helper)
+        session = Session(solver=solver, busy=busy, helper=helper, limits=limits)
         await run_server("127.0.0.1", 0, session, stop, ready=pipe.send,
                          drain_timeout=STOP_TIMEOUT / 2)
         return session.metrics.as_json()
@@ -194,11 +195,12 @@ class EmbeddedServer:
     """A server process on loopback for the length of a ``with`` block."""
 
     def __init__(self, solver: str = "analytic", cores: Cores = (),
-                 busy: bool = False, helper: bool | None = None) -> None:
+                 busy: bool = False, helper: bool | None = None,
+                 limits: ServerLimits | None = None) -> None:
         ctx = mp.get_context("spawn")  # a fresh interpreter: no inherited event loop
         self._pipe, child = ctx.Pipe()
         self._process = ctx.Process(target=_serve_process,
-                                    args=(child, solver, cores, busy, helper),
+                                    args=(child, solver, cores, busy, helper, limits),
                                     daemon=True)
         self.port = 0
         self.metrics: dict[str, object] = {}
@@ -379,7 +381,8 @@ def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
              motion: Path | None = None, solver: str = "analytic",
              render: Path | None = None, render_mode: str = "interpolate",
              busy: bool | None = None, helper: bool | None = None,
-             network: NetworkSpec | None = None) -> DemoResult:
+             network: NetworkSpec | None = None,
+             limits: ServerLimits | None = None) -> DemoResult:
     """The session; with ``render``, a headless viewer also draws the room to PNG files
     there and its ``capture_to_render`` joins the latency stages. ``busy``: the server
     busy-polls (``server.busy``); by default when it has a core of its own. ``helper``:
@@ -391,7 +394,7 @@ def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
     if busy is None:
         busy = len(cores) >= 2  # pin_to_cores gives the server the first core alone
     try:
-        with EmbeddedServer(solver, cores, busy, helper) as server, \
+        with EmbeddedServer(solver, cores, busy, helper, limits) as server, \
                 _network(server.port, network, cores) as proxy:
             pin_to_cores("spectators", cores)  # they run here (see run_clients)
             url = proxy.url if proxy is not None else server.url

@@ -15,6 +15,7 @@ import contextlib
 import functools
 import itertools
 import logging
+import math
 import secrets
 import signal
 import socket
@@ -52,7 +53,12 @@ from posecast.server.clock import now
 from posecast.server.eviction import Watchdog, close_now
 from posecast.server.helper import spare_cores
 from posecast.server.http_routes import session_routes
-from posecast.server.limits import Budget, ServerLimits, player_frames_per_s
+from posecast.server.limits import (
+    Budget,
+    ServerLimits,
+    frame_budget,
+    player_frames_per_s,
+)
 from posecast.server.metrics import Metrics
 from posecast.server.outbox import Outbox
 from posecast.server.prometheus import session_registry
@@ -257,7 +263,9 @@ class Session:
         self._owners[avatar.avatar_id] = ws
         limits = self.limits
         frames_per_s = player_frames_per_s(limits, hello.max_rate_hz)
-        frames = Budget(frames_per_s, limits.frame_burst)
+        frames = frame_budget(limits, frames_per_s)
+        # refusals in one window that only a flood makes: the connection is closed
+        flood_at = math.floor(limits.frame_flood_factor * frames.burst) + 1
         calibrations = Budget(limits.calibrations_per_s, limits.calibration_burst)
         address = ws.remote_address[0] if isinstance(ws.remote_address, tuple) else "?"
         from_address = self._address_calibrations.setdefault(address, Budget(
@@ -278,10 +286,19 @@ class Session:
                         self.metrics.frames_received += 1
                         try:
                             if not frames.take(t_received):
-                                raise self._limited("frames", frames_per_s, "" if (
-                                    hello.max_rate_hz is None) else (
-                                    f"; {limits.frame_rate_slack:g} x the "
-                                    f"{hello.max_rate_hz:g} Hz of hello.max_rate_hz"))
+                                if frames.refused == 1:
+                                    raise self._limited("frames", frames_per_s, "" if (
+                                        hello.max_rate_hz is None) else (
+                                        f"; {limits.frame_rate_slack:g} x the "
+                                        f"{hello.max_rate_hz:g} Hz of hello.max_rate_hz"))
+                                # told once per window: the clump a network stall
+                                # delivers costs one Error, not one each; a flood ends
+                                self.metrics.frames_rejected += 1
+                                self.metrics.limited["frames"] += 1
+                                if frames.refused == flood_at:
+                                    self._close_soon(ws, 1008, f"flooding: over "
+                                                     f"{frames_per_s:g} frames per second")
+                                continue
                             if not room.is_calibrated(avatar.avatar_id):
                                 raise ProtocolError(ErrorCode.NOT_CALIBRATED,
                                                     "send a calibrate message (T-pose) "
@@ -340,12 +357,13 @@ class Session:
         if frame is None or frame.seq <= avatar.last_seq \
                 or not room.is_calibrated(avatar.avatar_id):
             return False
-        if not frames.take(t_received):  # over the rate: the handler's way refuses it
+        if not frames.would_take(t_received):  # over the rate: the handler's way refuses it
             return False
         try:
             room.submit(avatar.avatar_id, frame, t_received)
         except ValueError:  # the solver refused the poses: the handler's way explains
             return False
+        frames.take(t_received)
         avatar.last_seq = frame.seq
         self.metrics.frames_received += 1
         if self.busy is not None:

@@ -9,6 +9,7 @@ overrides any of them; ``Session(limits=...)`` takes them.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -25,7 +26,13 @@ class ServerLimits:
     max_queue: int = 16
     # tracker frames per second per player: a 144 Hz headset with slack for jitter
     frames_per_s: float = 240.0
-    frame_burst: int = 60  # frames in a 0.25 s clump (the bucket refills whole)
+    # the frame budget is counted per window this long (the bucket refills whole): a
+    # network stall up to about this long delivers its frames in one clump, all taken
+    frame_window_s: float = 1.0
+    # frames over the budget in one window: the first gets an Error, the rest are dropped
+    # and counted without a reply each, so a stall's clump does not end the connection;
+    # over this many times the budget, more than any stall holds, it is closed (1008)
+    frame_flood_factor: float = 4.0
     # a player that declares its rate (hello.max_rate_hz) gets this many times that
     # (capped by frames_per_s): a 90 Hz player cannot send a 240 Hz one's solves
     frame_rate_slack: float = 1.5
@@ -112,6 +119,11 @@ class ServerLimits:
         return dataclasses.replace(self, **changes)
 
 
+def frame_budget(limits: ServerLimits, per_s: float) -> Budget:
+    """A player's frame budget: ``per_s`` over windows of ``frame_window_s``."""
+    return Budget(per_s, max(1, math.ceil(per_s * limits.frame_window_s)))
+
+
 def player_frames_per_s(limits: ServerLimits, declared_hz: float | None) -> float:
     """Tracker frames per second a player may send: its declared rate plus slack, never
     above the server's ``frames_per_s``."""
@@ -125,20 +137,27 @@ class Budget:
     message costs one float compare and one int decrement (no allocation on the frame
     path); the bucket being empty is the rejection."""
 
-    __slots__ = ("burst", "left", "refill_at", "window")
+    __slots__ = ("burst", "left", "refill_at", "refused", "window")
 
     def __init__(self, per_s: float, burst: int) -> None:
         self.burst = burst
         self.window = burst / per_s
         self.left = burst
         self.refill_at = 0.0
+        self.refused = 0  # messages refused in the current window
+
+    def would_take(self, t: float) -> bool:
+        """Whether ``take(t)`` would succeed; spends nothing."""
+        return t >= self.refill_at or self.left > 0
 
     def take(self, t: float) -> bool:
         """Spend one message at time ``t`` (seconds); False when none is left."""
         if t >= self.refill_at:
             self.left = self.burst
             self.refill_at = t + self.window
+            self.refused = 0
         if self.left <= 0:
+            self.refused += 1
             return False
         self.left -= 1
         return True

@@ -14,6 +14,7 @@ from conftest import serving
 from test_server import calibration, receive, receive_type, tracker
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed
+from websockets.protocol import State
 
 from posecast.client.cli import main
 from posecast.client.spectator import Spectator
@@ -179,7 +180,7 @@ def test_errors_that_keep_coming_close_the_connection(session: Session) -> None:
 
 def test_tracker_frames_over_the_rate_are_refused(session: Session,
                                                   recording: ViveRecording) -> None:
-    limits = ServerLimits(frames_per_s=20.0, frame_burst=5)
+    limits = ServerLimits(frames_per_s=20.0, frame_window_s=0.25)  # 5 per window
 
     async def test(url: str) -> None:
         async with joined(url, "player", "fast") as ws:
@@ -198,7 +199,7 @@ def test_a_player_is_held_to_the_rate_it_declared(session: Session,
                                                    recording: ViveRecording) -> None:
     """A player that says it sends 10 Hz gets 15 frames/s (slack 1.5), not the server's
     240: sending at 240 is refused and the reason names the declared rate."""
-    limits = ServerLimits(frame_burst=10)
+    limits = ServerLimits(frame_window_s=10 / 15)  # 10 frames per window at 15/s
 
     async def test(url: str) -> None:
         async with connect(url, compression=None) as ws:
@@ -215,6 +216,49 @@ def test_a_player_is_held_to_the_rate_it_declared(session: Session,
             assert "10 Hz of hello.max_rate_hz" in err.message  # type: ignore[attr-defined]
         # the window: 10 frames per 10 / 15 s. The two over it were refused, not solved
         assert session.metrics.limited["frames"] >= 1
+
+    run(test, session, limits)
+
+
+def test_a_stalls_clump_costs_one_error_and_a_flood_ends_the_connection(
+        session: Session, recording: ViveRecording) -> None:
+    """Frames a network stall held arrive at once: the ones over the window's budget are
+    dropped with one Error, and the player streams on. Ten times the budget at once is
+    no stall: the connection is closed (1008)."""
+    limits = ServerLimits(frame_window_s=10 / 15)  # a 10 Hz player: 10 per window
+
+    async def player(url: str, room: str) -> ClientConnection:
+        ws = await connect(url, compression=None)
+        await ws.send(encode(Hello(protocol_version=PROTOCOL_VERSION, role="player",
+                                   room=room, display_name="clump", max_rate_hz=10.0)))
+        assert isinstance(await receive(ws), Welcome)
+        await ws.send(calibration(recording))
+        return ws
+
+    async def test(url: str) -> None:
+        rejected = session.metrics.frames_rejected
+        ws = await player(url, "stall")
+        for i in range(1, 26):  # 2.5 windows' worth at once: 15 over
+            await ws.send(tracker(recording, i))
+        await ws.send(encode(Ping(t0=0.0)))
+        errors = []  # what came before the Pong, which comes after every frame
+        while not isinstance(msg := await receive(ws), Pong):
+            errors += [msg] if isinstance(msg, Error) else []
+        assert len(errors) == 1 and errors[0].code == "rate_limited", errors
+        assert session.metrics.frames_rejected - rejected == 15
+        await asyncio.sleep(10 / 15)  # the next window: it streams on
+        await ws.send(tracker(recording, 26))
+        await ws.send(encode(Ping(t0=0.0)))
+        assert isinstance(await receive_type(ws, Pong), Pong)
+        assert ws.state is State.OPEN
+        await ws.close()
+
+        flood = await player(url, "flood")
+        for i in range(1, 101):  # 10 windows' worth at once
+            with contextlib.suppress(ConnectionClosed):
+                await flood.send(tracker(recording, i))
+        assert await closed_code(flood) == 1008
+        assert "flooding" in (flood.close_reason or "")
 
     run(test, session, limits)
 
