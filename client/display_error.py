@@ -86,7 +86,11 @@ class RecordingSource:
         self.source = source
         self.rate_hz = source.rate_hz
         self._calibration: DeviceSample | None = None
-        self._samples: list[DeviceSample] = []
+        # capture times and pose arrays, not the samples: floats and arrays are no work
+        # for Python's cycle collector, and 16 players' samples kept as objects made its
+        # pauses show in the demo's p99 (docs/performance.md)
+        self._times: list[float] = []
+        self._poses: list[np.ndarray] = []
 
     def calibration(self) -> DeviceSample:
         self._calibration = self.source.calibration()
@@ -95,7 +99,8 @@ class RecordingSource:
     def read(self) -> DeviceSample | None:
         sample = self.source.read()
         if sample is not None:
-            self._samples.append(sample)
+            self._times.append(sample.t_capture)
+            self._poses.append(sample.poses)
         return sample
 
     def close(self) -> None:
@@ -103,11 +108,10 @@ class RecordingSource:
 
     def log(self, avatar_id: int | None) -> CaptureLog | None:
         """The log, or None with no avatar, no T-pose or fewer than two samples."""
-        if avatar_id is None or self._calibration is None or len(self._samples) < 2:
+        if avatar_id is None or self._calibration is None or len(self._times) < 2:
             return None
         return CaptureLog(avatar_id, self._calibration.roles, self._calibration.poses.copy(),
-                          np.array([s.t_capture for s in self._samples]),
-                          np.stack([s.poses for s in self._samples]))
+                          np.array(self._times), np.stack(self._poses))
 
 
 @dataclass
