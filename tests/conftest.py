@@ -9,11 +9,13 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Callable, Iterator
 from pathlib import Path
 
 import pytest
 
+from posecast.client.viewer.bench import Clip, solve_builtin_clip
+from posecast.client.viewer.renderer import GLUnavailableError, Renderer
 from posecast.server.app import Session, run_server
 from posecast.solver.motion import ViveRecording
 from posecast.solver.readers.vive import read_vive
@@ -69,3 +71,24 @@ async def serving(session: Session) -> AsyncIterator[str]:
     finally:
         stop.set()
         await asyncio.wait_for(server, SERVER_TIMEOUT)
+
+
+VIEW_W, VIEW_H = 640, 480  # the viewer tests' offscreen frame
+
+
+@pytest.fixture(scope="module")
+def renderer() -> Iterator[Renderer]:
+    """A headless renderer of VIEW_W x VIEW_H (skipped without OpenGL), per test module."""
+    try:
+        r = Renderer.standalone(VIEW_W, VIEW_H)
+    except GLUnavailableError as err:
+        pytest.skip(f"no headless OpenGL: {err}")
+    yield r
+    r.release()
+    r.ctx.release()
+
+
+@pytest.fixture(scope="module")
+def clip() -> Clip:
+    """The built-in walk, solved: skeleton and poses to draw."""
+    return solve_builtin_clip()

@@ -5,14 +5,13 @@ libgl1-mesa-dri missing)."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
 import numpy as np
 import pytest
+from conftest import VIEW_H, VIEW_W
 
-from posecast.client.viewer.bench import Clip, solve_builtin_clip
+from posecast.client.viewer.bench import Clip
 from posecast.client.viewer.camera import OrbitCamera, first_person, mirror
-from posecast.client.viewer.renderer import BACKGROUND, AvatarDraw, GLUnavailableError, Renderer
+from posecast.client.viewer.renderer import BACKGROUND, AvatarDraw, Renderer
 from posecast.client.viewer.skinning import (
     FittedAvatar,
     SkeletonMismatchError,
@@ -25,28 +24,14 @@ from posecast.protocol import AvatarInfo
 from posecast.solver import rotations as R
 from posecast.solver.readers.gltf import SkinnedMesh, load_makehuman
 
-W, H = 640, 480
+W, H = VIEW_W, VIEW_H
 
 
-@pytest.fixture(scope="module")
-def renderer() -> Iterator[Renderer]:
-    try:
-        r = Renderer.standalone(W, H)
-    except GLUnavailableError as err:
-        pytest.skip(f"no headless OpenGL: {err}")
-    yield r
-    r.release()
-    r.ctx.release()
 
 
 @pytest.fixture(scope="module")
 def mesh() -> SkinnedMesh:
     return load_makehuman()
-
-
-@pytest.fixture(scope="module")
-def clip() -> Clip:
-    return solve_builtin_clip()
 
 
 def rest(mesh: SkinnedMesh) -> tuple[np.ndarray, np.ndarray]:

@@ -9,13 +9,12 @@ import json
 import math
 import subprocess
 import sys
-from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
-from conftest import serving
+from conftest import VIEW_H, VIEW_W, serving
 from PIL import Image
 from swing_video import marker, swing
 
@@ -23,7 +22,7 @@ from posecast.client.builtin import builtin_motion_path
 from posecast.client.cli import _parser
 from posecast.client.player import run_player
 from posecast.client.sources.bvh_source import BvhSource
-from posecast.client.viewer.bench import Clip, solve_builtin_clip
+from posecast.client.viewer.bench import Clip
 from posecast.client.viewer.camera import OrbitCamera
 from posecast.client.viewer.headless import HeadlessStats, run_headless_viewer
 from posecast.client.viewer.marker import (
@@ -34,27 +33,13 @@ from posecast.client.viewer.marker import (
     marker_image,
     marker_size,
 )
-from posecast.client.viewer.renderer import AvatarDraw, GLUnavailableError, Renderer
+from posecast.client.viewer.renderer import AvatarDraw, Renderer
 from posecast.client.viewer.skinning import fit_avatar, template_avatar
 from posecast.server.app import Session
 
-W, H = 640, 480
+W, H = VIEW_W, VIEW_H
 
 
-@pytest.fixture(scope="module")
-def renderer() -> Iterator[Renderer]:
-    try:
-        r = Renderer.standalone(W, H)
-    except GLUnavailableError as err:
-        pytest.skip(f"no headless OpenGL: {err}")
-    yield r
-    r.release()
-    r.ctx.release()
-
-
-@pytest.fixture(scope="module")
-def clip() -> Clip:
-    return solve_builtin_clip()
 
 
 def find_marker(image: np.ndarray) -> tuple[float, tuple[float, float]]:
