@@ -19,7 +19,12 @@ The paper fixes which axes each joint has (Table 1, 56 DoF in the MakeHuman rig:
 calf 1, lower arm 2, hand 2, clavicle 2, every other joint 3) and one limit (the knee
 turns about x only, 0..2 rad). It gives no other numbers; the others here are ranges of
 motion from the clinical literature, widened a little because trackers are strapped on
-soft tissue and calibration is imperfect.
+soft tissue and calibration is imperfect. Two go further than the paper:
+- the knee flexes to 150 deg, not 115 (2 rad): deep squats, kneeling and a sprinter's
+  swing leg pass 140 deg, and 2 rad left those feet short of their trackers;
+- the ankle flexes +-90 deg about its reference: the foot tracker measures it, and a
+  BVH whose rest pose lies flat takes its reference from the first frame, which may be
+  mid-stride (a run's first frame has the foot 50 deg from its median).
 """
 
 from __future__ import annotations
@@ -76,9 +81,9 @@ JOINTS: dict[str, JointSpec] = {
     # T-pose) flexes the wrist, z deviates it towards the thumb or the little finger
     "hand": JointSpec("xz", (-85, 0, -35), (85, 0, 35), None, FORWARD),
     "thigh": JointSpec("xyz", (-135, -50, -55), (35, 50, 35), DOWN, LEFT, True),
-    # the paper's own numbers: the knee turns about x only, 0..2 rad
-    "shin": JointSpec("x", (0, 0, 0), (float(np.degrees(2.0)), 0, 0), DOWN, LEFT, True),
-    "foot": JointSpec("xyz", (-40, -40, -35), (60, 40, 35), None, LEFT),
+    # the paper's axes (the knee turns about x only), a real knee's range (see above)
+    "shin": JointSpec("x", (0, 0, 0), (150, 0, 0), DOWN, LEFT, True),
+    "foot": JointSpec("xyz", (-90, -40, -35), (90, 40, 35), None, LEFT),
     "toes": JointSpec("xyz", (-60, -15, -15), (45, 15, 15), None, LEFT),
 }
 

@@ -5,7 +5,8 @@ builds the skeleton's *canonical pose*: the reference pose (the rest pose, or a 
 standing frame when the rest pose is not upright, as in the Bandai files) turned to face
 +z with +y up, with arms straightened out sideways and legs straight down. Each canonical
 joint then gets a limit frame (y along the bone, x from the table; mirrored on the right
-side) and the local rotation of a joint is
+side; an elbow or knee that the reference pose bends hinges about the axis it bends
+about there) and the local rotation of a joint is
 
     q_local = pre @ D @ post,   pre = c @ L,  post = L^-1
 
@@ -124,8 +125,10 @@ def canonical_pose(skeleton: Skeleton, roles: dict[str, list[int]],
     return R.canonical(local)
 
 
-def _limit_frame(role: str, bone: NDArray[np.float64] | None) -> NDArray[np.float64]:
-    """World rotation of a joint's limit frame in the canonical pose (body = world)."""
+def _limit_frame(role: str, bone: NDArray[np.float64] | None,
+                 hinge: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
+    """World rotation of a joint's limit frame in the canonical pose (body = world);
+    ``hinge``: the x axis, where the rig shows it (``_hinge_axes``)."""
     spec = spec_for(role)
     right = role.endswith("_r")
     mirror = np.array([-1.0, 1.0, 1.0])
@@ -135,6 +138,8 @@ def _limit_frame(role: str, bone: NDArray[np.float64] | None) -> NDArray[np.floa
         y = np.array(spec.bone if spec.bone is not None else (0.0, 1.0, 0.0))
         y = -(mirror * y) if right else y
     x_ref = -(mirror * np.array(spec.x_ref)) if right else np.array(spec.x_ref)
+    if hinge is not None and np.dot(hinge, x_ref) > 0.0:  # else: bent backwards, not a hinge
+        x_ref = hinge
     y = R.normalize_vec(y)
     x = x_ref - np.dot(x_ref, y) * y
     if np.linalg.norm(x) < 1e-6:
@@ -149,6 +154,36 @@ def _is_limb_bone(role: str) -> bool:
     return base in _BONE_CHILD or base in ("hand", "toes")
 
 
+# A reference pose's elbow (knee) bent less than this may be its carrying angle (elbow,
+# 5-20 deg) or the knee's valgus (5-10 deg), not flexion: the default axis stays.
+MIN_HINGE_BEND = np.radians(30.0)
+_HINGES = {"forearm": ("upperarm", "hand"), "shin": ("thigh", "foot")}  # mid: (upper, end)
+
+
+def _hinge_axes(skeleton: Skeleton, roles: dict[str, list[int]],
+                reference: NDArray[np.float64] | None,
+                canon_gq: NDArray[np.float64]) -> dict[str, NDArray[np.float64]]:
+    """Elbow and knee hinge axes (world, canonical pose) where the reference pose shows
+    them: a bent elbow (knee) bends about its hinge, which is fixed in the upper arm's
+    (thigh's) frame. A mocap rig's elbow axis is its own (Bandai's lies 10-40 deg from
+    the default, and the default put that much twist in every upper arm)."""
+    local = R.identity((skeleton.num_joints,)) if reference is None else np.asarray(reference)
+    gq, gp = global_pose(skeleton, local)
+    out = {}
+    for mid_role, (upper_role, end_role) in _HINGES.items():
+        for side in ("_l", "_r"):
+            if mid_role + side not in roles:
+                continue
+            u, m, e = (roles[r + side][0] for r in (upper_role, mid_role, end_role))
+            a, b = gp[m] - gp[u], gp[e] - gp[m]
+            n = np.cross(a, b)
+            if np.arctan2(np.linalg.norm(n), np.dot(a, b)) < MIN_HINGE_BEND:
+                continue
+            n_upper = R.rotate(R.conjugate(gq[u]), n / np.linalg.norm(n))
+            out[mid_role + side] = R.rotate(canon_gq[u], n_upper)
+    return out
+
+
 def build_rig(skeleton: Skeleton, reference: NDArray[np.float64] | None = None,
               style: str | None = None) -> Rig:
     roles = role_map(skeleton, style)
@@ -160,11 +195,12 @@ def build_rig(skeleton: Skeleton, reference: NDArray[np.float64] | None = None,
     lo = np.zeros((J, 3))
     hi = np.zeros((J, 3))
     movable = np.zeros(J, dtype=bool)
+    hinges = _hinge_axes(skeleton, roles, reference, gq)
     for role, joints in roles.items():
         for j in joints:
             spec = spec_for(role)
             bone = _bone_dir(skeleton, roles, role, j, gq, gp) if _is_limb_bone(role) else None
-            F = _limit_frame(role, bone)
+            F = _limit_frame(role, bone, hinges.get(role))
             L = R.mul(R.conjugate(gq[j]), F)  # limit frame in the joint's local frame
             pre[j] = R.mul(canon[j], L)
             post[j] = R.conjugate(L)
