@@ -163,15 +163,15 @@ def solve_spine(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, chain, n,
             g = tmul(g, tconj(row4(q, chain[i])))
             o = trotate(g, row3(offsets, chain[i]))
             px, py, pz = px - o[0], py - o[1], pz - o[2]
-        # the torso bends to carry the neck's base there: each joint its share
-        for _sweep in range(2):
-            for i in range(nt):
-                j = chain[i]
-                r1 = (gp[base, 0] - gp[j, 0], gp[base, 1] - gp[j, 1], gp[base, 2] - gp[j, 2])
-                r2 = (px - gp[j, 0], py - gp[j, 1], pz - gp[j, 2])
-                _turn_by_share(parents, q, gq, pre, post, lo, hi, j, tbetween(r1, r2),
-                               1.0 / (nt - i))
-                fk_joints(parents, offsets, q, gq, gp, chain[i:], nt + 1 - i)
+        # the torso bends to carry the neck's base there: each joint its share (one
+        # sweep a round: a second changed nothing but the time)
+        for i in range(nt):
+            j = chain[i]
+            r1 = (gp[base, 0] - gp[j, 0], gp[base, 1] - gp[j, 1], gp[base, 2] - gp[j, 2])
+            r2 = (px - gp[j, 0], py - gp[j, 1], pz - gp[j, 2])
+            _turn_by_share(parents, q, gq, pre, post, lo, hi, j, tbetween(r1, r2),
+                           1.0 / (nt - i))
+            fk_joints(parents, offsets, q, gq, gp, chain[i:], nt + 1 - i)
     if nt < n - 1:
         set_row4(q, base, tnormalize(tmul(tconj(row4(gq, parents[base])), g)))
         clamp_joint_at(q, base, pre, post, lo, hi)
