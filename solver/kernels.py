@@ -433,17 +433,26 @@ def dls_step(q, pre, post, lo, hi, Jm, cols_joint, cols_axis, m, rows, A, e, y, 
 
 @njit(cache=True)
 def dls_chain(parents, offsets, q, gq, gp, pre, post, lo, hi, dofmask,
-              chain, n, target, w_rot, lam, max_iter, eps, scratch):
+              chain, n, target, w_rot, lam, max_iter, eps, scratch, keep_closer, qsave):
     """Damped least squares over every degree of freedom of a chain (parents first, the
     effector last): dtheta = J^T (J J^T + lam^2 I)^-1 e, then clamp to the limits.
-    ``scratch`` comes from ``dls_scratch``. Returns the number of iterations used."""
+    ``scratch`` comes from ``dls_scratch``. Leaves the chain's globals current (a later
+    chain hangs from them). ``keep_closer``: undo the iterations if they left the
+    effector farther from the target's position than they found it (``qsave``: (J, 4)
+    work rows): where the limits forbid the target's orientation, the weighted error
+    traded position for it, up to 0.8 m. Returns the number of iterations used."""
     Jm, cols_joint, cols_axis, A, y, e = scratch
     eff = chain[n - 1]
     it = 0
-    while it < max_iter:
+    before = 0.0
+    while True:
         fk_joints(parents, offsets, q, gq, gp, chain, n)
         err = effector_error(gq, gp, eff, target, w_rot, e)
-        if err < eps:
+        if it == 0 and keep_closer:
+            before = e[0] * e[0] + e[1] * e[1] + e[2] * e[2]
+            for i in range(n):
+                set_row4(qsave, chain[i], row4(q, chain[i]))
+        if err < eps or it >= max_iter:
             break
         m = 0
         for i in range(n):
@@ -458,6 +467,10 @@ def dls_chain(parents, offsets, q, gq, gp, pre, post, lo, hi, dofmask,
                         lam):
             break
         it += 1
+    if keep_closer and it > 0 and e[0] * e[0] + e[1] * e[1] + e[2] * e[2] > before:
+        for i in range(n):
+            set_row4(q, chain[i], row4(qsave, chain[i]))
+        fk_joints(parents, offsets, q, gq, gp, chain, n)
     return it
 
 

@@ -188,3 +188,26 @@ def test_a_bent_arms_elbow_is_turned_part_of_the_way_down(rig: Rig) -> None:
     assert abs(posed) > 0.3  # the test pose's elbow is out to the side
     assert np.linalg.norm(sp[0, hand] - w) < 1e-6  # the hand still reaches its target
     assert solved == pytest.approx((1.0 - ELBOW_DOWN_SHARE) * posed, abs=0.02)
+
+
+def test_a_hand_turned_beyond_its_limits_stays_on_its_tracker(rig: Rig) -> None:
+    """A hand whose orientation no arm within its limits can give at its position (bent
+    back 150 deg across the forearm): the refinement may not trade the hand's position
+    for it (it pulled hands up to 0.8 m off their trackers in a dance clip)."""
+    arms = [rig.role(f"{b}_{s}") for b in ("upperarm", "forearm", "hand") for s in "lr"]
+    q = random_poses(rig, 30, 0.5, seed=8)
+    canonical = PoseBatch.canonical(rig, 30).rotations
+    others = np.setdiff1d(np.arange(rig.skeleton.num_joints), arms)
+    q[:, others] = canonical[:, others]  # the shoulders where the solver starts them
+    targets = targets_of(rig, q, np.zeros((30, 3)))
+    _, gp = forward_kinematics(rig.skeleton, q, np.zeros((30, 3)))
+    for side, slot in (("l", 2), ("r", 3)):
+        forearm = gp[:, rig.role(f"hand_{side}")] - gp[:, rig.role(f"forearm_{side}")]
+        across = R.normalize_vec(np.cross(forearm, [0.0, 1.0, 0.0]))
+        turn = R.from_axis_angle(across, np.full(30, np.radians(150.0)))
+        targets[:, slot, 3:] = R.mul(turn, targets[:, slot, 3:])
+    state = PoseBatch.canonical(rig, 30)
+    Solver(rig, "analytic").solve(targets, state)
+    pos, rot = effector_errors(rig, state, targets)
+    assert np.median(rot[:, 2:4]) > 20.0  # most of the orientations are out of reach
+    assert pos[:, 2:4].max() < 0.001

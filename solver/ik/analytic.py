@@ -24,8 +24,10 @@
   (pronation), the wrist and ankle the rest; a nearly straight arm instead keeps the
   forearm's twist and turns the hand with the shoulder (its elbow cannot tell the two
   apart). The clavicles stay neutral (CLAVICLE_SHARE).
-- Every joint is clamped to its limits; where a clamp or an unreachable target leaves an
-  error, a few damped least squares iterations over the whole chain finish the job.
+- Every joint is clamped to its limits (a limb whose upper bone's twist was clamped is
+  aimed at its target again); where a clamp or an unreachable target leaves an error, a
+  few damped least squares iterations over the whole chain finish the job, kept unless
+  they move the chain's end away from its target's position.
 - A hand still short of a target beyond its straight arm (the spine's share left the
   shoulder too far) gets a damped least squares pass over the spine, neck and both arms
   at once, towards the head and both hands, kept if it brings them closer.
@@ -59,7 +61,6 @@ from posecast.solver.kernels import (
     tconj,
     tmul,
     tnormalize,
-    tree_error,
     trotate,
 )
 
@@ -108,6 +109,8 @@ def _range_of_motion(lo, hi, j):
 # Rounds of settling the neck's share of the head's turn against the chest's bend (see
 # solve_spine): the third changes the Vive and mocap errors by < 0.1 mm, more by none.
 NECK_ROUNDS = 3
+REACHED = 0.001
+SWIVEL_STEP = math.radians(15.0)
 
 
 @njit(cache=True)
@@ -294,6 +297,56 @@ def _forearm_twist(Gm: Quat, pre, post, mid, end, tq: Quat) -> float:
 
 
 @njit(cache=True)
+def _place_upper(parents, offsets, q, gq, gp, pre, post, lo, hi, upper, mid, end, dvec,
+                 Gu, nx, ny, nz, psi):
+    """Set the upper bone to the aimed Gu turned by psi about the upper-end line, within
+    its limits; returns how far (squared) the end joint then lies from the target. A
+    clamped twist turns the plane the limb bends in, so the clamped bone is aimed at the
+    target again (twice, as far as its swing limits allow)."""
+    g = tmul(taxis_angle(nx, ny, nz, psi), Gu)
+    for _ in range(3):
+        set_row4(q, upper, tnormalize(tmul(tconj(row4(gq, parents[upper])), g)))
+        clamped = clamp_joint_at(q, upper, pre, post, lo, hi)
+        fk_joint(parents, offsets, q, gq, gp, upper)
+        fk_joint(parents, offsets, q, gq, gp, mid)
+        fk_joint(parents, offsets, q, gq, gp, end)
+        if not clamped:
+            break
+        cur = (gp[end, 0] - gp[upper, 0], gp[end, 1] - gp[upper, 1], gp[end, 2] - gp[upper, 2])
+        g = tmul(tbetween(cur, dvec), row4(gq, upper))
+    return ((gp[end, 0] - gp[upper, 0] - dvec[0]) ** 2 + (gp[end, 1] - gp[upper, 1] - dvec[1]) ** 2
+            + (gp[end, 2] - gp[upper, 2] - dvec[2]) ** 2)
+
+
+@njit(cache=True)
+def _swivel_within_limits(parents, offsets, q, gq, gp, pre, post, lo, hi, upper, mid, end,
+                          dvec, Gu, nx, ny, nz, psi, short):
+    """The upper bone turned by psi, or, where its limits then hold the end joint off the
+    target (a dancer's hand 0.2 m off its tracker), by the swivel nearest psi that they
+    let reach it (in SWIVEL_STEP steps either way), or else the one that comes nearest.
+    ``short``: how far the bent limb falls short of the target (or beyond) anyway."""
+    ok = (short + REACHED) ** 2
+    miss = _place_upper(parents, offsets, q, gq, gp, pre, post, lo, hi, upper, mid, end,
+                        dvec, Gu, nx, ny, nz, psi)
+    if miss <= ok:
+        return
+    best, best_miss = psi, miss
+    k = 1
+    while k * SWIVEL_STEP <= math.pi and best_miss > ok:
+        for sgn in (1.0, -1.0):
+            cand = psi + sgn * k * SWIVEL_STEP
+            m = _place_upper(parents, offsets, q, gq, gp, pre, post, lo, hi, upper, mid,
+                             end, dvec, Gu, nx, ny, nz, cand)
+            if m < best_miss:
+                best, best_miss = cand, m
+                if m <= ok:
+                    break
+        k += 1
+    _place_upper(parents, offsets, q, gq, gp, pre, post, lo, hi, upper, mid, end, dvec, Gu,
+                 nx, ny, nz, best)
+
+
+@njit(cache=True)
 def solve_limb(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, upper, mid, end,
                target, twist_in_mid):
     """Two-bone limb: upper (upper arm / thigh), mid (forearm / shin, hinge about its limit
@@ -339,11 +392,9 @@ def solve_limb(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, upper, mid
         # people keep their elbows low: turn a bent arm's elbow part of the way down
         if wb > 0.0:
             psi -= ELBOW_DOWN_SHARE * wb * _below(Gu, offsets, mid, psi, nx, ny, nz)
-    Gu = tmul(taxis_angle(nx, ny, nz, psi), Gu)
-    set_row4(q, upper, tnormalize(tmul(tconj(row4(gq, parents[upper])), Gu)))
-    clamp_joint_at(q, upper, pre, post, lo, hi)
-    fk_joint(parents, offsets, q, gq, gp, upper)
-    fk_joint(parents, offsets, q, gq, gp, mid)
+    short = abs(dist - math.sqrt(w[0] ** 2 + w[1] ** 2 + w[2] ** 2))
+    _swivel_within_limits(parents, offsets, q, gq, gp, pre, post, lo, hi, upper, mid, end,
+                          dvec, Gu, nx, ny, nz, psi, short)
     if twist_in_mid:
         tau = _forearm_twist(row4(gq, mid), pre, post, mid, end, tq)
         set_row4(q, mid, composed(row4(pre, mid), row4(post, mid), theta, tau, 0.0))
@@ -397,20 +448,31 @@ def _arm_out_of_reach(offsets, gp, chains, tg, eps):
     return False
 
 
+@njit(cache=True, inline="always")
+def _position_miss(gp, effs, tg, slots):
+    """Sum of the squared distances of the effectors effs from their targets' positions."""
+    s = 0.0
+    for k in range(effs.shape[0]):
+        for d in range(3):
+            s += (tg[slots[k], d] - gp[effs[k], d]) ** 2
+    return s
+
+
 @njit(cache=True)
 def _reach_with_spine(parents, offsets, q, gq, gp, pre, post, lo, hi, dofmask, upper,
                       effs, slots, tg, w_rot, lam, refine, eps, tree, qsave):
     """Refine the spine, neck and both arms together towards the head and both hands:
     the spine's closed-form share can leave a shoulder too far from its hand, which the
-    arm chains alone cannot make up. Kept if it brings them closer (keeping it only when
-    it reached all three left reaching hands 40-70 mm short, in frames the pass could
-    not finish in its few iterations)."""
+    arm chains alone cannot make up. Kept if it brings them closer to their targets'
+    positions (keeping it only when it reached all three left reaching hands 40-70 mm
+    short, in frames the pass could not finish in its few iterations; judging it by the
+    weighted error let it pull hands off for orientations the limits forbid)."""
     qsave[:] = q
-    before = tree_error(gq, gp, effs, tg, slots, w_rot, tree[5])
+    before = _position_miss(gp, effs, tg, slots)
     it = dls_tree(parents, offsets, q, gq, gp, pre, post, lo, hi, dofmask, upper,
                   upper.shape[0], effs, tg, slots, w_rot, lam, refine, eps, tree)
     fk_joints(parents, offsets, q, gq, gp, upper, upper.shape[0])
-    if tree_error(gq, gp, effs, tg, slots, w_rot, tree[5]) >= before:
+    if _position_miss(gp, effs, tg, slots) >= before:
         q[:] = qsave
         fk_joints(parents, offsets, q, gq, gp, upper, upper.shape[0])
     return it
@@ -458,6 +520,7 @@ def solve_analytic_one(parents, off, canon, pre, post, lo, hi, dofmask, pelvis, 
     place_root(parents, off, qb, rootb, gq, gp, pelvis, tg[1])
     solve_spine(parents, off, qb, gq, gp, canon, pre, post, lo, hi, chains[0],
                 lengths[0], _neck_start(parents, chains), tg[0])
+    total = 0
     for c in (1, 2):  # arms: clavicle, upper arm, forearm, hand
         ch = chains[c]
         aim_clavicle(parents, off, qb, gq, gp, canon, pre, post, lo, hi, ch[0], ch[1],
@@ -469,13 +532,12 @@ def solve_analytic_one(parents, off, canon, pre, post, lo, hi, dofmask, pelvis, 
         fk_joints(parents, off, qb, gq, gp, ch, 1)
         solve_limb(parents, off, qb, gq, gp, canon, pre, post, lo, hi, ch[0], ch[1],
                    ch[2], tg[c + 1], False)
-    total = 0
     if refine > 0:
         for c in range(chains.shape[0]):
             eff_slot = 0 if c == 0 else c + 1
             total += dls_chain(parents, off, qb, gq, gp, pre, post, lo, hi, dofmask,
-                               chains[c], lengths[c], tg[eff_slot], w_rot, lam,
-                               refine, eps, scratch)
+                               chains[c], lengths[c], tg[eff_slot], w_rot, lam, refine, eps,
+                               scratch, True, qsave)
         if _arm_out_of_reach(off, gp, chains, tg, eps):
             total += _reach_with_spine(parents, off, qb, gq, gp, pre, post, lo, hi,
                                        dofmask, upper, effs, slots, tg, w_rot, lam,

@@ -22,6 +22,7 @@ def solve_dls_range(parents, offsets, pre, post, lo, hi, dofmask, pelvis, chains
     gq = np.empty((J, 4))
     gp = np.empty((J, 3))
     scratch = dls_scratch(3 * chains.shape[1])
+    qsave = np.empty((J, 4))  # unused: every iteration is kept
     for b in range(first, last):
         off = offsets[0] if shared else offsets[b]
         place_root(parents, off, q[b], root[b], gq, gp, pelvis, targets[b, 1])
@@ -30,7 +31,7 @@ def solve_dls_range(parents, offsets, pre, post, lo, hi, dofmask, pelvis, chains
             eff_slot = 0 if c == 0 else c + 1
             total += dls_chain(parents, off, q[b], gq, gp, pre, post, lo, hi, dofmask,
                                chains[c], lengths[c], targets[b, eff_slot], w_rot, lam,
-                               max_iter, eps, scratch)
+                               max_iter, eps, scratch, False, qsave)
         iterations[b] = total
 
 
