@@ -11,23 +11,25 @@
   40 mm off in a leaning mocap clip.)
 - Arms and legs: the elbow (knee) angle follows from the shoulder-wrist (hip-ankle)
   distance in closed form, through the hinge's own axis and the real bone offsets. The
-  swivel of the elbow (knee) about the shoulder-wrist line is the one that puts the
-  forearm (shin) where the hand's (foot's) orientation says it should be with a neutral
-  wrist (ankle), as the canonical pose holds them: the paper's subjects complained of
-  twisted elbows, which is what a position-only solver gives; a bent arm's elbow then
-  turns a tenth of the way down to the lowest point of its circle (ELBOW_DOWN_SHARE).
-  Both are continuous through the poses where they lose their meaning (no flips in a
-  frame): a neutral-wrist elbow near
-  the shoulder-wrist line is trusted in proportion to its distance from it (SWIVEL_TRUST,
+  elbow's swivel about the shoulder-wrist line puts the forearm where the hand's
+  orientation says it should be with a neutral wrist, as the canonical pose holds it
+  (the paper's subjects complained of twisted elbows, which is what a position-only
+  solver gives); a bent arm's elbow then turns a tenth of the way down to the lowest
+  point of its circle (ELBOW_DOWN_SHARE). Both are continuous through the poses where
+  they lose their meaning (no flips in a frame): a neutral-wrist elbow near the
+  shoulder-wrist line is trusted in proportion to its distance from it (SWIVEL_TRUST,
   else the last frame's swivel stays), and the pull down fades out towards a vertical
-  line and towards the top of the circle (DOWN_FADE). The forearm takes the hand's twist
-  (pronation), the wrist and ankle the rest; a nearly straight arm instead keeps the
-  forearm's twist and turns the hand with the shoulder (its elbow cannot tell the two
-  apart). The clavicles stay neutral (CLAVICLE_SHARE).
-- Every joint is clamped to its limits (a limb whose upper bone's twist was clamped is
-  aimed at its target again); where a clamp or an unreachable target leaves an error, a
-  few damped least squares iterations over the whole chain finish the job, kept unless
-  they move the chain's end away from its target's position.
+  line and towards the top of the circle (DOWN_FADE). The knee's swivel shares the
+  foot's turn between hip and ankle by their ranges of twist (all of it on the hip
+  twisted the thighs of a yoga pose's turned-out foot to their limit). The forearm takes
+  the hand's twist (pronation), the wrist and ankle the rest; a nearly straight arm
+  instead keeps the forearm's twist and turns the hand with the shoulder (its elbow
+  cannot tell the two apart). The clavicles stay neutral (CLAVICLE_SHARE).
+- Every joint is clamped to its limits; where that holds a hand or foot off a target
+  it could reach, the swivel nearest the chosen one that reaches it is taken instead.
+  Where a clamp or an unreachable target leaves an error, a few damped least squares
+  iterations over the whole chain finish the job, kept unless they move the chain's end
+  away from its target's position.
 - A hand still short of a target beyond its straight arm (the spine's share left the
   shoulder too far) gets a damped least squares pass over the spine, neck and both arms
   at once, towards the head and both hands, kept if it brings them closer.
@@ -56,6 +58,7 @@ from posecast.solver.kernels import (
     row4,
     set_effector_rotation,
     set_row4,
+    swing_twist,
     taxis_angle,
     tbetween,
     tconj,
@@ -227,21 +230,37 @@ def _perp_angle(ax, ay, az, bx, by, bz, nx, ny, nz):
 
 
 @njit(cache=True)
-def _swivel(Gu, offsets, pre, post, canon, mid, end, tq, dvec, nx, ny, nz,
-            arm):
+def _swivel(Gu, offsets, pre, post, canon, lo, hi, mid, end, tq, dvec, nx, ny, nz,
+            arm, parents, gq):
     """Angle to turn the aimed limb about the upper-end line.
 
-    Leg: the knee's hinge axis lines up with the foot's flexion axis (no ankle
-    abduction). Arm: the point of the elbow circle nearest to where a neutral wrist
-    would put the elbow, i.e. the wrist bent as little as it can be (demanding no wrist
-    deviation at all is worse: real wrists deviate, and the elbow moved with them)."""
+    Leg: the knee's hinge axis turns from where the hip leaves it unrotated towards
+    where the foot's orientation puts it with a neutral ankle, by the hip's share of the
+    two joints' range of twist (the ankle turns the foot the rest of the way). Arm: the
+    point of the elbow circle nearest to where a neutral wrist would put the elbow, i.e.
+    the wrist bent as little as it can be (demanding no wrist deviation at all is worse:
+    real wrists deviate, and the elbow moved with them)."""
     if not arm:
         ex = (1.0, 0.0, 0.0)
         # the knee's hinge axis where the foot's orientation puts it with a neutral ankle
         # (the canonical one: a rig's knee axis need not be the foot's flexion axis)
         x_end = trotate(tmul(tmul(tq, tconj(row4(canon, end))), tconj(row4(post, mid))), ex)
         a = trotate(tmul(Gu, row4(pre, mid)), ex)  # the knee's hinge axis, world
-        return _perp_angle(a[0], a[1], a[2], x_end[0], x_end[1], x_end[2], nx, ny, nz)
+        psi_foot = _perp_angle(a[0], a[1], a[2], x_end[0], x_end[1], x_end[2], nx, ny, nz)
+        # ...but the hip and the ankle share that turn of the foot by their ranges of
+        # twist, as the spine shares the head's: from the knee's axis with the hip not
+        # rotated (the aimed thigh's twist undone), the hip's share of the way
+        upper = parents[mid]
+        hip = hi[upper, 1] - lo[upper, 1]
+        share = hip / (hip + hi[end, 1] - lo[end, 1])
+        Gp = row4(gq, parents[upper])
+        st = swing_twist(tmul(tconj(Gp), Gu), row4(pre, upper), row4(post, upper))
+        G0 = tmul(Gp, tmul(tmul(row4(pre, upper), (st[0], st[1], st[2], st[3])),
+                           row4(post, upper)))
+        a0 = trotate(tmul(G0, row4(pre, mid)), ex)
+        psi0 = _perp_angle(a[0], a[1], a[2], a0[0], a0[1], a0[2], nx, ny, nz)
+        dp = psi_foot - psi0
+        return psi0 + share * math.atan2(math.sin(dp), math.cos(dp))
     E = trotate(Gu, row3(offsets, mid))  # elbow, relative to the shoulder
     e2 = E[0] ** 2 + E[1] ** 2 + E[2] ** 2
     de = E[0] * nx + E[1] * ny + E[2] * nz
@@ -371,8 +390,8 @@ def solve_limb(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, upper, mid
     Gu = tmul(tbetween(cur_dir, dvec), row4(gq, upper))
     # swivel about the upper-end line
     nx, ny, nz = dvec[0] / dist, dvec[1] / dist, dvec[2] / dist
-    psi = _swivel(Gu, offsets, pre, post, canon, mid, end, tq, dvec, nx, ny, nz,
-                  twist_in_mid)
+    psi = _swivel(Gu, offsets, pre, post, canon, lo, hi, mid, end, tq, dvec, nx, ny, nz,
+                  twist_in_mid, parents, gq)
     if twist_in_mid:
         # a (nearly) straight arm turns the hand about its length with the shoulder as
         # well as the forearm, and its elbow says nothing about which: keep the forearm's
@@ -520,7 +539,6 @@ def solve_analytic_one(parents, off, canon, pre, post, lo, hi, dofmask, pelvis, 
     place_root(parents, off, qb, rootb, gq, gp, pelvis, tg[1])
     solve_spine(parents, off, qb, gq, gp, canon, pre, post, lo, hi, chains[0],
                 lengths[0], _neck_start(parents, chains), tg[0])
-    total = 0
     for c in (1, 2):  # arms: clavicle, upper arm, forearm, hand
         ch = chains[c]
         aim_clavicle(parents, off, qb, gq, gp, canon, pre, post, lo, hi, ch[0], ch[1],
@@ -532,6 +550,7 @@ def solve_analytic_one(parents, off, canon, pre, post, lo, hi, dofmask, pelvis, 
         fk_joints(parents, off, qb, gq, gp, ch, 1)
         solve_limb(parents, off, qb, gq, gp, canon, pre, post, lo, hi, ch[0], ch[1],
                    ch[2], tg[c + 1], False)
+    total = 0
     if refine > 0:
         for c in range(chains.shape[0]):
             eff_slot = 0 if c == 0 else c + 1
