@@ -1,5 +1,6 @@
 """No catastrophic frames: an arm raised overhead and back, bent and twisting, with the
-wrist flexing and deviating, is followed without the elbow jumping across its circle."""
+wrist flexing and deviating, is followed without the elbow jumping across its circle; a
+body turned upside down is solved as well as upright; the paper's solver wins no clip."""
 
 from __future__ import annotations
 
@@ -85,3 +86,26 @@ def test_the_papers_solver_beats_the_default_on_no_vive_clip(shared_data: Shared
         assert ours.mean_error_mm < paper.mean_error_mm, name
         assert ours.heldout_error_mm < paper.heldout_error_mm, name
         assert ours.extra["p99_frame_error_mm"] < paper.extra["p99_frame_error_mm"], name
+
+
+def test_a_body_turned_over_is_solved_as_well_as_upright() -> None:
+    """The built-in walk turned upside down and laid on its back as a whole: the
+    trackers move with it, so the solved body should be as good as upright (only the
+    bent elbow's pull towards the ground is fixed to the world)."""
+    import dataclasses
+
+    from posecast.client.builtin import builtin_motion_path
+    from posecast.solver import rotations as R
+    from posecast.solver.evaluation import evaluate_bvh
+    from posecast.solver.readers.bvh import read_bvh
+
+    motion = read_bvh(builtin_motion_path())
+    upright = evaluate_bvh(motion)
+    for axis, angle in (((0.0, 0.0, 1.0), np.pi), ((1.0, 0.0, 0.0), np.pi / 2)):
+        turn = R.from_axis_angle(np.array(axis), np.array(angle))
+        rot, trans = motion.rotations.copy(), motion.translations.copy()
+        rot[:, 0] = R.mul(turn, rot[:, 0])
+        trans[:, 0] = R.rotate(turn, trans[:, 0])
+        turned = evaluate_bvh(dataclasses.replace(motion, rotations=rot, translations=trans))
+        assert abs(turned.mean_error_mm - upright.mean_error_mm) < 1.0
+        assert turned.extra["p99_frame_error_mm"] < upright.extra["p99_frame_error_mm"] + 5.0
