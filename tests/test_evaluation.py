@@ -72,6 +72,23 @@ def test_bvh_eval_follows_a_body_that_travels(shared_data: SharedData, name: str
     assert result.position_error_mm["Hips"] < 1.0  # the pelvis tracker is met exactly
 
 
+MOCAP_CLIPS = ("bandai1_bow_normal_001", "bandai1_dance-short_normal_001",
+               "bandai1_kick_normal_001", "bandai1_punch_normal_002",
+               "bandai1_run_active_001", "bandai1_walk_normal_001",
+               "bandai2_raise-up-both-hands_normal_001", "cmu_01_01_playground_jumps",
+               "cmu_02_01_walk", "cmu_131_03_start_hop_stop")
+
+
+def test_the_shared_mocap_clips_meet_the_accuracy_targets(shared_data: SharedData) -> None:
+    """Issue 17's targets over the ten shared BVH clips (MPJPE 7.5 mm, MPJRE 7.8 deg
+    when written): the mean over clips of each clip's MPJPE <= 10 mm, MPJRE <= 9 deg."""
+    clips = [evaluate_bvh(read_bvh(shared_data(f"mocap/{name}.bvh"))) for name in MOCAP_CLIPS]
+    assert np.mean([c.mean_error_mm for c in clips]) <= 10.0
+    assert np.mean([c.rotation_error_deg for c in clips]) <= 9.0
+    # the joints between the pelvis and the trackers, which the trackers constrain
+    assert np.mean([c.extra["rotation_error_tracked_deg"] for c in clips]) <= 8.0
+
+
 def test_a_knee_tracker_rides_a_share_of_the_knee_bend() -> None:
     """Its position turns about the knee by KNEE_BEND_SHARE of the knee's flexion away
     from the straight leg; its rotation stays the thigh's."""

@@ -113,6 +113,9 @@ def _range_of_motion(lo, hi, j):
 # solve_spine): the second gains 0.1 mm on the Vive recordings, a third nothing (and
 # each costs ~0.8 us a solve).
 NECK_ROUNDS = 2
+# A hand or foot this far (metres) beyond what its bent limb can reach anyway counts as
+# held off its target by the limits, and the swivel search (_swivel_within_limits) tries
+# other swivels, SWIVEL_STEP apart on either side of the rule's.
 REACHED = 0.001
 SWIVEL_STEP = math.radians(15.0)
 
