@@ -271,6 +271,16 @@ def out_file(text: str) -> Path:
     return path
 
 
+def new_file(text: str) -> Path:
+    """A file to make: ``out_file``, and not one that exists (recordings are never
+    written over)."""
+    path = out_file(text)
+    if path.exists():
+        raise argparse.ArgumentTypeError(f"{text!r} exists; recordings are never written "
+                                         "over: choose another name or remove it")
+    return path
+
+
 def source(text: str) -> str:
     """openvr, or vive:FILE / bvh:FILE naming a file that exists."""
     kind, sep, path = text.partition(":")  # only the first colon: "vive:C:\\rec.csv"

@@ -201,6 +201,10 @@ def _parser() -> argparse.ArgumentParser:
                          "one clip stand apart (default: 0,0)")
     pl.add_argument("--seconds", type=arg.positive_float, default=None,
                     help="stop after this many seconds (default: when the source ends)")
+    pl.add_argument("--record", type=arg.new_file, default=None, metavar="FILE",
+                    help="also keep the raw device poses in FILE, a Vive recording "
+                         "(docs/vive-format.md) that posecast eval and --source vive:FILE "
+                         "read; frame 0 is the calibration T-pose")
     pl.add_argument("--calibrate-in", type=arg.non_negative_float, default=None,
                     help="seconds to get into the T-pose before calibrating "
                          "(default: 3 for openvr, 0 for recordings); press Enter to "
@@ -714,6 +718,14 @@ def _play(args: argparse.Namespace) -> int:
         source = open_source(args.source, args.devices, loop=args.loop, offset=args.offset)
     except (SourceError, FormatError) as err:
         return _fail("play", err)
+    recording = None
+    if args.record is not None:
+        from posecast.client.sources.recording_source import RecordingSource
+        try:
+            source = recording = RecordingSource(source, args.record)
+        except OSError as err:
+            source.close()
+            return _fail("play", f"--record {args.record}: {err.strerror or err}")
     delay = args.calibrate_in if args.calibrate_in is not None else (
         3.0 if args.source == "openvr" else 0.0)
     try:
@@ -726,6 +738,10 @@ def _play(args: argparse.Namespace) -> int:
     finally:
         source.close()
     print(player_summary(player.stats))
+    if recording is not None:
+        print(f"kept {recording.frames} frames in {recording.path}"
+              + (f" ({recording.skipped} left out: a device of the first frame was "
+                 "missing)" if recording.skipped else ""))
     return 128 + signum if signum else 0
 
 

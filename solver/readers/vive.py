@@ -202,17 +202,28 @@ FILE_ORDER = ("head", "hip", "lHand", "lForeArm", "rHand", "rForeArm", "lFoot", 
               "lKnee", "rKnee")
 
 
-def format_vive(rec: ViveRecording, scale: float = 1.0) -> str:
-    """A recording as the text of a Vive recording file (read back by ``read_vive``), its
-    devices in the authors' file order; 6 significant digits, as their files have."""
-    tags = [t for t in FILE_ORDER if TAGS[t] in rec.devices]
-    missing = set(rec.devices) - {TAGS[t] for t in tags}
+def file_tags(devices: tuple[str, ...]) -> list[str]:
+    """The tags of these devices in the authors' file order; a ValueError for a device
+    the format has no tag for."""
+    tags = [t for t in FILE_ORDER if TAGS[t] in devices]
+    missing = set(devices) - {TAGS[t] for t in tags}
     if missing:
         raise ValueError(f"devices the format has no tag for: {', '.join(sorted(missing))}")
+    return tags
+
+
+def format_vive_frame(tags: list[str], poses: NDArray[np.float64], scale: float = 1.0) -> str:
+    """One frame's lines: ``poses`` (D, 7), position | quaternion, one row per tag in
+    ``tags`` order; 6 significant digits, as the authors' files have."""
+    return "".join(" ".join([tag, *(f"{v:.6g}" for v in (*row, scale))]) + "\n"
+                   for tag, row in zip(tags, poses.tolist(), strict=True))
+
+
+def format_vive(rec: ViveRecording, scale: float = 1.0) -> str:
+    """A recording as the text of a Vive recording file (read back by ``read_vive``), its
+    devices in the authors' file order."""
+    tags = file_tags(rec.devices)
     order = [rec.device(TAGS[t]) for t in tags]
-    lines = [" ".join(HEADER)]
-    for f in range(rec.num_frames):
-        for tag, d in zip(tags, order, strict=True):
-            values = (*rec.positions[f, d], *rec.rotations[f, d], scale)
-            lines.append(" ".join([tag, *(f"{v:.6g}" for v in values)]))
-    return "\n".join(lines) + "\n"
+    poses = np.concatenate([rec.positions[:, order], rec.rotations[:, order]], axis=-1)
+    return " ".join(HEADER) + "\n" + "".join(
+        format_vive_frame(tags, poses[f], scale) for f in range(rec.num_frames))
