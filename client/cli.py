@@ -256,6 +256,29 @@ def _parser() -> argparse.ArgumentParser:
                          "screen (alone: right_hand; JOINT: " + ", ".join(VIVE_DEVICES)
                          + ")")
 
+    rc = sub.add_parser("record", help="record a room's skeletons and avatar frames to a file",
+                        description="Record a room as its spectators receive it: every "
+                        "skeleton and avatar frame, with their timestamps, to a new .pcrec "
+                        "file (docs/recording-format.md) that posecast replay and export "
+                        "read. " + STOPPED)
+    rc.add_argument("--server", required=True, type=arg.server_url,
+                    help="the server, ws://HOST:PORT (wss:// for TLS)")
+    rc.add_argument("--room", required=True, type=arg.room,
+                    help="the room to record; " + ROOM_NAME_RULE)
+    rc.add_argument("--out", required=True, type=arg.new_file, metavar="FILE",
+                    help="the recording to make (never written over)")
+    rc.add_argument("--seconds", type=arg.positive_float, default=None,
+                    help="stop after this many seconds (default: until Ctrl-C)")
+    rc.add_argument("--cafile", type=arg.ca_file, default=None,
+                    help="PEM CA certificates to trust for a wss:// server (a private "
+                         "CA); default: the system's trust store")
+    rc.add_argument("--token", default=None, type=arg.token,
+                    help="a spectator's join token (posecast token), for a server with a "
+                         "secret")
+    rc.add_argument("--no-reconnect", dest="reconnect", action="store_false",
+                    help="end when the connection is lost (by default: reconnect with "
+                         "backoff and go on recording)")
+
     tk = sub.add_parser("token", help="print a join token for a server with a secret",
                         description="Print a join token (a JWT signed with the server's "
                         "secret) for one room and role; only the token goes to stdout, so "
@@ -472,6 +495,19 @@ def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
         return run_latency_video(args.video, args.tracker_box, args.avatar_box,
                                  tracker=args.tracker, select=args.select, fps=args.fps,
                                  plot=args.plot, as_json=args.json)
+    if args.command == "record":
+        from posecast.client.connection import SessionError
+        from posecast.client.record_command import run_record
+
+        if (status := _cafile_without_tls("record", args)) is not None:
+            return status
+        try:
+            return run_record(args.server, args.room, args.out, args.seconds, args.token,
+                              args.cafile, args.reconnect)
+        except SessionError as err:
+            return _fail("record", _session_words(err))
+        except OSError as err:  # the file (made since the arguments were checked)
+            return _fail("record", f"{args.out}: {err.strerror or err}")
     if args.command == "serve":
         return _serve(args)
     if args.command == "play":

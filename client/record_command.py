@@ -1,0 +1,67 @@
+"""``posecast record``: a room to a recording file, with a progress line and a summary."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from pathlib import Path
+
+from posecast.client.connection import Reconnect, stop_task
+from posecast.client.console import REFRESH_S, StatusLine, run_until_signal
+from posecast.client.recorder import RecordingSpectator, RecordStats, record_room
+
+
+def run_record(url: str, room: str, out: Path, seconds: float | None, token: str | None,
+               cafile: Path | None, reconnect: bool) -> int:
+    """Record until the time is up or a signal; the exit status. Raises SessionError (the
+    server cannot be reached or refuses) and OSError (the file cannot be made)."""
+    status = StatusLine("posecast record")
+    stats, signum = asyncio.run(_record(url, room, out, seconds, token, cafile, reconnect,
+                                        status))
+    if stats is not None:
+        print(record_summary(stats, room))
+    return 128 + signum if signum else 0
+
+
+async def _record(url: str, room: str, out: Path, seconds: float | None, token: str | None,
+                  cafile: Path | None, reconnect: bool,
+                  status: StatusLine) -> tuple[RecordStats | None, int]:
+    stop = asyncio.Event()
+    reporters: list[asyncio.Task[None]] = []
+
+    def on_spectator(spectator: RecordingSpectator) -> None:
+        reporters.append(asyncio.create_task(_report(spectator, room, out, status)))
+
+    policy = Reconnect(say=status.say) if reconnect else None
+    try:
+        return await run_until_signal(
+            record_room(url, room, out, seconds, stop, token, cafile, policy, on_spectator),
+            stop)
+    finally:
+        for task in reporters:
+            await stop_task(task)
+        status.clear()
+
+
+async def _report(spectator: RecordingSpectator, room: str, out: Path,
+                  status: StatusLine) -> None:
+    while spectator.session is None:
+        await asyncio.sleep(0.05)
+    status.say(f"recording room {room!r} on {spectator.url} to {out}; Ctrl-C stops")
+    t0 = time.monotonic()
+    while True:
+        await asyncio.sleep(REFRESH_S)
+        w, stats = spectator.writer, spectator.stats
+        n = len(spectator.seen)
+        status.progress(f"{stats.frames_received} avatar-frames of {n} "
+                        f"avatar{'s' if n != 1 else ''}, {w.bytes / 1e6:.1f} MB, "
+                        f"{time.monotonic() - t0:.0f} s")
+
+
+def record_summary(stats: RecordStats, room: str) -> str:
+    if stats.avatar_frames == 0:
+        return (f"recorded {stats.seconds:.1f} s of room {room!r} but no avatar-frames: "
+                f"nobody played there ({stats.path}, {stats.records} records)")
+    return (f"recorded {stats.seconds:.1f} s of room {room!r}: {stats.avatar_frames} "
+            f"avatar-frames of {stats.avatars} avatar{'s' if stats.avatars != 1 else ''}, "
+            f"{stats.bytes / 1e6:.2f} MB in {stats.path}")
