@@ -35,6 +35,7 @@ from posecast.protocol.messages import (
     Pong,
     ServerMessage,
     TrackerFrame,
+    ViewerReport,
     Welcome,
 )
 from posecast.protocol.quantize import (
@@ -54,7 +55,8 @@ __all__ = [
     "SUPPORTED_VERSIONS",
     "AvatarBatch", "AvatarFrame", "AvatarInfo", "AvatarRoster", "Calibrate", "ClientMessage",
     "ClockEstimator", "ClockSample", "DeviceRole", "Error", "ErrorCode", "Hello", "Leave",
-    "Message", "Ping", "Pong", "ProtocolError", "ServerMessage", "TrackerFrame", "Welcome",
+    "Message", "Ping", "Pong", "ProtocolError", "ServerMessage", "TrackerFrame",
+    "ViewerReport", "Welcome",
     "clock_sample", "decode", "decode_client", "dequantize_rotations", "encode",
     "encode_tracker_frame", "quantize_rotations", "rotation_angle",
 ]

@@ -1,6 +1,6 @@
 """Every message of a posecast session, as frozen pydantic models.
 
-Client -> server: Hello, TrackerFrame, Calibrate, Ping, Leave.
+Client -> server: Hello, TrackerFrame, Calibrate, Ping, Leave, ViewerReport.
 Server -> client: Welcome, AvatarRoster (of AvatarInfo), AvatarBatch (of AvatarFrame),
 Pong, Error.
 
@@ -59,6 +59,7 @@ from posecast.protocol.validation import (
     device_poses,
     is_wire,
     readonly,
+    time_column,
 )
 
 PROTOCOL_VERSION = 1
@@ -294,6 +295,56 @@ class Calibrate(_DevicePoses):
         return self
 
 
+# --------------------------------------------------------------------------- viewer reports
+# rows of one ViewerReport: 3 x 8 bytes each, so 128 fill 3 KiB, within a client message
+MAX_REPORT_ROWS = 128
+
+
+class ViewerReport(Model):
+    """A spectator's own stages of avatar-frames it presented, for the server's metrics.
+
+    One row per avatar-frame, each drawn for the first time: its ``t_capture`` as the
+    batch gave it, when the batch reached the viewer's process and when the frame was
+    presented, both converted to the server clock with the viewer's current offset (one
+    offset for both, so that presented never precedes received). Added in protocol
+    version 1: a server that predates it answers ``unknown_type``, and a viewer then
+    stops reporting.
+    """
+
+    type: Literal["viewer_report"] = "viewer_report"
+    t_capture: Array  # (n,) float64 on the wire, 1 <= n <= MAX_REPORT_ROWS
+    t_received: Array  # (n,)
+    t_presented: Array  # (n,)
+
+    @field_validator("t_capture", "t_received", "t_presented", mode="plain")
+    @classmethod
+    def _times(cls, value: Any, info: ValidationInfo) -> Array:
+        column = time_column(value, is_wire(info))
+        if not 1 <= column.shape[0] <= MAX_REPORT_ROWS:
+            raise ValueError(f"{column.shape[0]} rows; 1 to {MAX_REPORT_ROWS} allowed")
+        first = info.data.get("t_capture")
+        if first is not None and column.shape[0] != first.shape[0]:
+            raise ValueError(f"{column.shape[0]} rows for {first.shape[0]} t_capture rows")
+        return readonly(column)
+
+    @field_serializer("t_capture", "t_received", "t_presented")
+    def _times_wire(self, times: Array) -> bytes:
+        return np.ascontiguousarray(times, dtype="<f8").tobytes()
+
+    @model_validator(mode="after")
+    def _presented_after_received(self) -> ViewerReport:
+        early = np.flatnonzero(self.t_presented < self.t_received)
+        if early.size:
+            row = int(early[0])
+            raise ValueError(f"row {row}: t_presented {float(self.t_presented[row])!r} is "
+                             f"before t_received {float(self.t_received[row])!r}")
+        return self
+
+    @property
+    def size(self) -> int:
+        return int(self.t_capture.shape[0])
+
+
 # --------------------------------------------------------------------------- clock, errors
 class Ping(Model):
     type: Literal["ping"] = "ping"
@@ -327,15 +378,17 @@ class Leave(Model):
     reason: Text = ""
 
 
-ClientMessage = Hello | TrackerFrame | Calibrate | Ping | Leave
+ClientMessage = Hello | TrackerFrame | Calibrate | Ping | Leave | ViewerReport
 ServerMessage = Welcome | AvatarRoster | AvatarBatch | Pong | Error
 Message = ClientMessage | ServerMessage
 
-CLIENT_MESSAGES: tuple[type[Model], ...] = (Hello, TrackerFrame, Calibrate, Ping, Leave)
+CLIENT_MESSAGES: tuple[type[Model], ...] = (Hello, TrackerFrame, Calibrate, Ping, Leave,
+                                             ViewerReport)
 SERVER_MESSAGES: tuple[type[Model], ...] = (Welcome, AvatarRoster, AvatarBatch, Pong, Error)
 MESSAGE_TYPES: dict[str, type[Model]] = {
     cls.model_fields["type"].default: cls for cls in CLIENT_MESSAGES + SERVER_MESSAGES}
 
 __all__ = ["PROTOCOL_VERSION", "SUPPORTED_VERSIONS", "AvatarBatch", "AvatarFrame",
            "AvatarInfo", "AvatarRoster", "Calibrate", "ClientMessage", "Error", "Hello",
-           "Leave", "Message", "Ping", "Pong", "ServerMessage", "TrackerFrame", "Welcome"]
+           "Leave", "Message", "Ping", "Pong", "ServerMessage", "TrackerFrame", "ViewerReport",
+           "Welcome"]

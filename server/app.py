@@ -23,6 +23,7 @@ import ssl
 from collections.abc import Callable, Sequence
 
 import numba
+import numpy as np
 from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 from websockets.frames import CloseCode
@@ -39,6 +40,7 @@ from posecast.protocol import (
     Pong,
     ProtocolError,
     TrackerFrame,
+    ViewerReport,
     Welcome,
     decode_client,
     encode,
@@ -439,6 +441,7 @@ class Session:
             return
         room.spectators[conn_id] = spectator
         spectator.task = asyncio.get_running_loop().create_task(outbox.run())
+        reports = Budget(self.limits.reports_per_s, self.limits.report_burst)
         try:
             async for data in ws:
                 t_received = arrival_time(ws, now)
@@ -448,6 +451,11 @@ class Session:
                         raise ProtocolError(ErrorCode.NOT_ALLOWED,
                                             f"a spectator only receives; {msg.type} is for "
                                             "players")
+                    if isinstance(msg, ViewerReport):
+                        if not reports.take(t_received):
+                            raise self._limited("reports", self.limits.reports_per_s)
+                        self._viewer_report(msg, t_received)
+                        continue
                     await self._common(ws, msg, t_received, "spectator")
                 except ProtocolError as err:
                     await self._reject(ws, err)
@@ -466,6 +474,24 @@ class Session:
             if not task.cancelled():
                 task.exception()  # retrieved: a send to a closed connection fails
             self.metrics.frames_dropped += outbox.dropped
+
+    def _viewer_report(self, report: ViewerReport, t_received: float) -> None:
+        """A spectator's presentation times into the metrics, once every time is within
+        ``capture_skew_s`` of the report's arrival: a viewer hours off, or one that
+        reports the future, would spoil the histograms every scrape reads."""
+        skew = self.limits.capture_skew_s
+        for name in ("t_capture", "t_received", "t_presented"):
+            times: np.ndarray = getattr(report, name)
+            off = np.flatnonzero(~(np.abs(times - t_received) <= skew))
+            if off.size:
+                row = int(off[0])
+                raise ProtocolError(ErrorCode.INVALID, (
+                    f"viewer_report.{name}[{row}]: {float(times[row])!r} is "
+                    f"{float(times[row]) - t_received:+.3g} s off the server clock at its "
+                    f"arrival; more than capture_skew_s ({skew:g} s): is the clock synced?"))
+        self.metrics.viewer_reports += 1
+        self.metrics.viewer_latency.report(report.t_capture, report.t_received,
+                                           report.t_presented)
 
     # ------------------------------------------------------------------ stopping
     async def drain(self, timeout: float = DRAIN_TIMEOUT) -> bool:

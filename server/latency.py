@@ -20,9 +20,10 @@ BUCKET_BOUNDS_S: tuple[float, ...] = (
 # on one machine"): capture (the player's t_capture + clock_offset) to its bytes' arrival;
 # arrival to solved; arrival to the batch handed to the sockets (or the outboxes)
 SERVER_STAGES: tuple[str, ...] = ("capture_to_server", "solve", "server")
-# the spectators' stages (received, presented) come from what viewers report back, a
-# later issue (browsers report presentation times): a ``StageHistograms`` of their own,
-# filled where those reports are read, and exposed beside these by the collector
+# the spectators' stages, from what viewers report (ViewerReport), named as
+# ``protocol.batch.stage_latencies`` names them: capture to the batch's arrival at the
+# viewer's process, and capture to the frame on its screen
+VIEWER_STAGES: tuple[str, ...] = ("capture_to_spectator", "capture_to_presented")
 
 
 class StageHistograms:
@@ -74,4 +75,19 @@ class ServerLatency(StageHistograms):
         np.subtract(t_received, t_capture, out=values[0])
         np.subtract(t_solved, t_received, out=values[1])
         np.subtract(t_sent, t_received, out=values[2])
+        self.observe(values)
+
+
+class ViewerLatency(StageHistograms):
+    """The spectators' stages of the avatar-frames they report (``VIEWER_STAGES``)."""
+
+    def __init__(self) -> None:
+        super().__init__(VIEWER_STAGES)
+
+    def report(self, t_capture: np.ndarray, t_received: np.ndarray,
+               t_presented: np.ndarray) -> None:
+        """One checked report: its rows' times, all on the server's clock."""
+        values = np.empty((2, t_capture.shape[0]), dtype=np.float64)
+        np.subtract(t_received, t_capture, out=values[0])
+        np.subtract(t_presented, t_capture, out=values[1])
         self.observe(values)

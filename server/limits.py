@@ -48,6 +48,10 @@ class ServerLimits:
     # clock-sync pings: a client sends a burst of 5 at start, then 1/s
     pings_per_s: float = 10.0
     ping_burst: int = 20
+    # viewer reports (presentation times for /metrics) per spectator: a browser sends
+    # one every 0.5 s; each costs a few numpy calls
+    reports_per_s: float = 4.0
+    report_burst: int = 8
     errors_per_s: float = 10.0
     error_burst: int = 20
     # a room's solve and every roster grow with its players

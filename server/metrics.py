@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass, field
 
-from posecast.server.latency import ServerLatency
+from posecast.server.latency import ServerLatency, ViewerLatency
 
 
 @dataclass
@@ -34,6 +34,9 @@ class Metrics:
     limited: Counter[str] = field(default_factory=Counter)
     # per solved avatar-frame, filled a batch at a time (Room); read by /metrics
     latency: ServerLatency = field(default_factory=ServerLatency)
+    # the spectators' own stages, from their reports (ViewerReport); read by /metrics
+    viewer_reports: int = 0  # reports taken (a refused one counts in ``rejected``)
+    viewer_latency: ViewerLatency = field(default_factory=ViewerLatency)
 
     def as_json(self) -> dict[str, object]:
         return {"connections": self.connections, "frames_received": self.frames_received,
@@ -43,5 +46,6 @@ class Metrics:
                 "frames_solved": self.frames_solved,
                 "frames_unsendable": self.frames_unsendable, "batches": self.batches,
                 "frames_delivered": self.frames_delivered,
-                "frames_dropped": self.frames_dropped, "rejected": dict(self.rejected),
+                "frames_dropped": self.frames_dropped,
+                "viewer_reports": self.viewer_reports, "rejected": dict(self.rejected),
                 "limited": dict(self.limited)}

@@ -87,16 +87,19 @@ class SessionCollector(Collector):
         yield GaugeMetricFamily("posecast_uptime_seconds", "Seconds since the session "
                                 "started.", value=now() - s.started)
 
+        yield CounterMetricFamily("posecast_viewer_reports", "Reports of presentation "
+                                  "times taken from spectators (ViewerReport).",
+                                  value=m.viewer_reports)
         latency = HistogramMetricFamily(
-            "posecast_latency_seconds", "Per solved avatar-frame, on the server's clock: "
+            "posecast_latency_seconds", "Per avatar-frame, on the server's clock: "
             "capture_to_server (captured to its bytes' arrival), solve (arrival to "
-            "solved), server (arrival to handed to the sockets).", labels=["stage"])
-        histograms = m.latency
-        for stage in histograms.stages:
-            buckets, total = histograms.cumulative(stage)
-            latency.add_metric([stage], buckets, total)
-        # the spectators' stages (a later issue) add their rows here, from their own
-        # StageHistograms (server.latency)
+            "solved), server (arrival to handed to the sockets), for every frame solved; "
+            "capture_to_spectator (to its arrival at a viewer) and capture_to_presented "
+            "(to a viewer's screen), for the frames viewers report.", labels=["stage"])
+        for histograms in (m.latency, m.viewer_latency):
+            for stage in histograms.stages:
+                buckets, total = histograms.cumulative(stage)
+                latency.add_metric([stage], buckets, total)
         yield latency
 
 
