@@ -279,6 +279,25 @@ def _parser() -> argparse.ArgumentParser:
                     help="end when the connection is lost (by default: reconnect with "
                          "backoff and go on recording)")
 
+    rp = sub.add_parser("replay", help="play a recording back into a room",
+                        description="Play a recording (posecast record) back into a room "
+                        "at its original timing: its avatars join the room and move as "
+                        "they did, for every spectator there. " + STOPPED)
+    rp.add_argument("file", type=arg.existing_file, metavar="FILE", help="a .pcrec recording")
+    rp.add_argument("--server", required=True, type=arg.server_url,
+                    help="the server, ws://HOST:PORT (wss:// for TLS)")
+    rp.add_argument("--room", required=True, type=arg.room,
+                    help="the room to play into; " + ROOM_NAME_RULE)
+    rp.add_argument("--speed", type=arg.positive_float, default=1.0,
+                    help="play this many times faster than recorded")
+    rp.add_argument("--loop", action="store_true", help="start again at the end, forever")
+    rp.add_argument("--cafile", type=arg.ca_file, default=None,
+                    help="PEM CA certificates to trust for a wss:// server (a private "
+                         "CA); default: the system's trust store")
+    rp.add_argument("--token", default=None, type=arg.token,
+                    help="a player's join token (posecast token --role player), for a "
+                         "server with a secret")
+
     tk = sub.add_parser("token", help="print a join token for a server with a secret",
                         description="Print a join token (a JWT signed with the server's "
                         "secret) for one room and role; only the token goes to stdout, so "
@@ -508,6 +527,17 @@ def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
             return _fail("record", _session_words(err))
         except OSError as err:  # the file (made since the arguments were checked)
             return _fail("record", f"{args.out}: {err.strerror or err}")
+    if args.command == "replay":
+        from posecast.client.connection import SessionError
+        from posecast.client.record_command import run_replay
+
+        if (status := _cafile_without_tls("replay", args)) is not None:
+            return status
+        try:
+            return run_replay(args.file, args.server, args.room, args.speed, args.loop,
+                              args.token, args.cafile)
+        except SessionError as err:
+            return _fail("replay", _session_words(err))
     if args.command == "serve":
         return _serve(args)
     if args.command == "play":

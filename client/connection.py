@@ -42,6 +42,8 @@ from posecast.client.tls import CAFileError, client_tls_context, tls_failure
 from posecast.protocol import (
     MAX_MESSAGE_BYTES,
     PROTOCOL_VERSION,
+    AvatarBatch,
+    AvatarRoster,
     ClientMessage,
     ClockEstimator,
     Error,
@@ -165,7 +167,7 @@ def _closed_reason(exc: ConnectionClosed, last_error: Error | None) -> str:
     return why
 
 
-def make_hello(url: str, role: Literal["player", "spectator"], room: str, name: str,
+def make_hello(url: str, role: Literal["player", "spectator", "replay"], room: str, name: str,
                token: str | None = None, max_rate_hz: float | None = None) -> Hello:
     """The Hello to join with; SessionError (one line, naming the field) if it is invalid,
     e.g. a room name the protocol does not allow."""
@@ -276,8 +278,9 @@ class Session:
         return self.welcome.avatar_id
 
     # ------------------------------------------------------------------ messages
-    async def send(self, message: ClientMessage) -> None:
-        """Send one message; SessionError if the server is gone."""
+    async def send(self, message: ClientMessage | AvatarRoster | AvatarBatch) -> None:
+        """Send one message (a replay sends rosters and batches); SessionError if the
+        server is gone."""
         try:
             await self.ws.send(encode(message))
         except ConnectionClosed as exc:

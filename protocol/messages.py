@@ -86,7 +86,9 @@ class Hello(Model):
 
     type: Literal["hello"] = "hello"
     protocol_version: Version
-    role: Literal["player", "spectator"]
+    # replay: a recording's avatars, published into the room (posecast replay; it sends
+    # their rosters and avatar batches, and is admitted with a player's token)
+    role: Literal["player", "spectator", "replay"]
     room: RoomName
     display_name: Name
     # the join token (server.auth) where the server has a secret: opaque here

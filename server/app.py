@@ -30,7 +30,10 @@ from websockets.frames import CloseCode
 from websockets.protocol import State
 
 from posecast.protocol import (
+    MAX_CLIENT_MESSAGE_BYTES,
     PROTOCOL_VERSION,
+    AvatarBatch,
+    AvatarRoster,
     Calibrate,
     Error,
     ErrorCode,
@@ -42,6 +45,7 @@ from posecast.protocol import (
     TrackerFrame,
     ViewerReport,
     Welcome,
+    decode,
     decode_client,
     encode,
 )
@@ -65,6 +69,7 @@ from posecast.server.metrics import Metrics
 from posecast.server.outbox import Outbox
 from posecast.server.prometheus import session_registry
 from posecast.server.rejection_log import LineBudget, RejectionLog
+from posecast.server.replay import ReplayedAvatars
 from posecast.server.room import Avatar, Delivery, Room, Spectator, send_deliveries
 from posecast.server.tls import allowed_origins, tcp_under_tls
 from posecast.solver.readers.gltf import load_makehuman
@@ -201,6 +206,8 @@ class Session:
         try:
             if hello.role == "player":
                 await self._player(ws, conn_id, room, hello)
+            elif hello.role == "replay":
+                await self._replay(ws, conn_id, room)
             else:
                 await self._spectator(ws, conn_id, room, hello)
         finally:
@@ -230,7 +237,9 @@ class Session:
                                     f"the first message must be hello, got {msg.type}")
             if self.tokens is not None:  # with a secret: its tokens only, for this room
                 try:
-                    self.tokens.verify(msg.token, msg.room, msg.role, msg.display_name)
+                    # a replay publishes avatars: a player's token admits it
+                    role = "player" if msg.role == "replay" else msg.role
+                    self.tokens.verify(msg.token, msg.room, role, msg.display_name)
                 except TokenError as refused:
                     raise ProtocolError(ErrorCode.AUTH_FAILED, str(refused)) from None
         except ProtocolError as err:
@@ -417,6 +426,47 @@ class Session:
             forget()
         else:
             asyncio.get_running_loop().call_later(self.reconnect_grace, forget)
+
+    # ------------------------------------------------------------------ replays
+    async def _replay(self, ws: ServerConnection, conn_id: int, room: Room) -> None:
+        """A recording's rosters and avatar batches published into the room
+        (``server.replay``); its avatars leave with it. Batches take a player's frame
+        budget, rosters a player's calibration budget with a room's worth of burst."""
+        limits = self.limits
+        avatars = ReplayedAvatars(room, lambda: next(self._ids), limits, self.metrics)
+        frames = frame_budget(limits, limits.frames_per_s)
+        rosters = Budget(limits.calibrations_per_s, limits.players_per_room)
+        try:
+            await ws.send(encode(Welcome(protocol_version=PROTOCOL_VERSION,
+                                         connection_id=conn_id, avatar_id=None,
+                                         server_time=now())))
+            async for data in ws:
+                t_received = arrival_time(ws, now)
+                try:
+                    msg = decode(data, max_bytes=MAX_CLIENT_MESSAGE_BYTES)
+                    if isinstance(msg, AvatarBatch):
+                        if not frames.take(t_received):
+                            raise self._limited("frames", limits.frames_per_s)
+                        avatars.batch(msg, t_received)
+                    elif isinstance(msg, AvatarRoster):
+                        if not rosters.take(t_received):
+                            raise self._limited("calibrations", limits.calibrations_per_s)
+                        avatars.roster(msg)
+                    elif isinstance(msg, Ping | Leave):
+                        await self._common(ws, msg, t_received, "replay")
+                    else:
+                        raise ProtocolError(ErrorCode.NOT_ALLOWED, f"a replay sends rosters "
+                                            f"and avatar batches, not {msg.type}")
+                except ProtocolError as err:
+                    await self._reject(ws, err)
+                except ConnectionClosed:
+                    raise
+                except Exception:  # a bug met by one message: it is answered, the rest goes on
+                    await self._internal_error(ws)
+        except ConnectionClosed:
+            pass
+        finally:
+            avatars.close()
 
     # ------------------------------------------------------------------ spectators
     async def _spectator(self, ws: ServerConnection, conn_id: int, room: Room,

@@ -22,6 +22,9 @@ class Metrics:
     # solved, but a spectator's checks would refuse its row (a root beyond the world's
     # bound): dropped alone, so that the rest of its batch goes out
     frames_unsendable: int = 0
+    # avatar-frames a replay connection published (server.replay): not solved here, but
+    # offered to the spectators like solved ones
+    frames_replayed: int = 0
     batches: int = 0
     # every solved avatar-frame offered to a spectator is exactly one of these two:
     # handed to its socket, or never sent (a newer one of the avatar replaced it in the
@@ -44,7 +47,8 @@ class Metrics:
                 "frames_discarded": self.frames_discarded,
                 "frames_rejected": self.frames_rejected,
                 "frames_solved": self.frames_solved,
-                "frames_unsendable": self.frames_unsendable, "batches": self.batches,
+                "frames_unsendable": self.frames_unsendable,
+                "frames_replayed": self.frames_replayed, "batches": self.batches,
                 "frames_delivered": self.frames_delivered,
                 "frames_dropped": self.frames_dropped,
                 "viewer_reports": self.viewer_reports, "rejected": dict(self.rejected),

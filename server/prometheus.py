@@ -41,6 +41,8 @@ FRAME_COUNTERS: tuple[tuple[str, str], ...] = (
     ("frames_rejected", "Tracker frames answered with an error."),
     ("frames_unsendable", "Avatar-frames solved but dropped: a spectator would refuse "
                           "the row."),
+    ("frames_replayed", "Avatar-frames a replay connection published to the room's "
+                        "spectators (posecast replay)."),
     ("frames_delivered", "Avatar-frames handed to a spectator's socket, summed over "
                          "spectators."),
     ("frames_dropped", "Avatar-frames never sent to a spectator: a newer one replaced "
