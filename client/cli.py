@@ -298,6 +298,20 @@ def _parser() -> argparse.ArgumentParser:
                     help="a player's join token (posecast token --role player), for a "
                          "server with a secret")
 
+    ex = sub.add_parser("export", help="a recording as one BVH file per avatar",
+                        description="Write each avatar of a recording (posecast record) as "
+                        "a BVH file: its calibrated skeleton as the hierarchy (centimetres), "
+                        "its poses resampled to one rate as the motion; Blender, three.js "
+                        "and posecast eval read them. An avatar recalibrated during the "
+                        "recording gets a second file.")
+    ex.add_argument("file", type=arg.existing_file, metavar="FILE", help="a .pcrec recording")
+    ex.add_argument("--bvh", required=True, type=arg.out_dir, metavar="DIR",
+                    help="the folder to write into, made if missing (files of the same "
+                         "names are replaced)")
+    ex.add_argument("--fps", type=arg.rate_hz, default=None,
+                    help="the frame rate of the files (default: the recording's own, the "
+                         "median rate rounded)")
+
     tk = sub.add_parser("token", help="print a join token for a server with a secret",
                         description="Print a join token (a JWT signed with the server's "
                         "secret) for one room and role; only the token goes to stdout, so "
@@ -538,6 +552,10 @@ def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
                               args.token, args.cafile)
         except SessionError as err:
             return _fail("replay", _session_words(err))
+    if args.command == "export":
+        from posecast.client.export_command import run_export
+
+        return run_export(args.file, args.bvh, args.fps)
     if args.command == "serve":
         return _serve(args)
     if args.command == "play":

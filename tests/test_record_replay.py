@@ -199,3 +199,46 @@ def test_a_server_with_a_secret_admits_a_replay_with_a_players_token() -> None:
     as_player, as_spectator = asyncio.run(main())
     assert as_player == "admitted"
     assert "auth_failed" in as_spectator
+
+
+def test_an_exported_bvh_reads_back_as_the_recording_moved(tmp_path: Path) -> None:
+    """``posecast export``: one BVH per avatar; read back by posecast's own reader, its
+    joints lie within 0.5 mm of the recording's (forward kinematics of the recorded poses
+    at the file's frame instants: rotations slerped, roots lerped between the two
+    recorded frames around each)."""
+    from posecast.client.export_command import take_skeleton
+    from posecast.client.recording import avatar_takes
+    from posecast.solver import rotations as R
+    from posecast.solver.fk import forward_kinematics
+    from posecast.solver.readers.bvh import read_bvh
+
+    path = tmp_path / "live.pcrec"
+
+    async def main() -> Recording:
+        async with serving(Session()) as url:
+            return await record_players(url, path, 1.5)
+
+    rec = asyncio.run(main())
+    out = subprocess.run([sys.executable, "-m", "posecast.client.cli", "export", str(path),
+                          "--bvh", str(tmp_path / "bvh")], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    takes = avatar_takes(rec)
+    assert len(takes) == PLAYERS and out.stdout.count(".bvh:") == PLAYERS
+    worst = 0.0
+    for take in takes:
+        motion = read_bvh(tmp_path / "bvh" / f"{take.info.display_name.replace(' ', '_')}.bvh")
+        assert motion.num_frames >= 90  # ~1.5 s at the recording's 90 fps
+        _, read = forward_kinematics(motion.skeleton, motion.rotations,
+                                     motion.translations[:, 0], motion.translations)
+        times = np.array(take.times)
+        t = times[0] + np.arange(motion.num_frames) / motion.fps
+        i = np.clip(np.searchsorted(times, t, side="right") - 1, 0, times.size - 2)
+        u = np.clip((t - times[i]) / (times[i + 1] - times[i]), 0.0, 1.0)
+        rot, roots = np.array(take.rotations), np.array(take.roots)
+        sk = take_skeleton(take)
+        _, recorded = forward_kinematics(
+            sk, R.slerp(rot[i], rot[i + 1], u[:, None]), roots[i] + u[:, None] * (
+                roots[i + 1] - roots[i]))
+        index = [motion.skeleton.names.index(n) for n in sk.names]
+        worst = max(worst, float(np.abs(read[:, index] - recorded).max()))
+    assert worst < 0.0005
