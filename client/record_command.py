@@ -109,6 +109,8 @@ def run_replay(path: Path, url: str, room: str, speed: float, loop: bool, token:
     errors = sum(stats.errors.values())
     print(f"played {stats.frames_sent} avatar-frames in {stats.seconds:.1f} s"
           + (f", {stats.loops} times through" if stats.loops > 1 else "")
+          + (f"; left out {stats.frames_skipped} recorded before their avatar's skeleton"
+             if stats.frames_skipped else "")
           + (f"; server errors: {dict(stats.errors)} (last: {stats.last_error})"
              if errors else ""))
     return 128 + signum if signum else (1 if errors else 0)

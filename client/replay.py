@@ -38,6 +38,9 @@ class ReplayStats:
     rosters_sent: int = 0
     batches_sent: int = 0
     frames_sent: int = 0  # avatar-frames
+    # avatar-frames recorded before their avatar's roster (a server may send a new
+    # avatar's first pose before its skeleton): a spectator could not draw them either
+    frames_skipped: int = 0
     loops: int = 0  # times the recording was played to its end
     seconds: float = 0.0
     errors: Counter[str] = field(default_factory=Counter)  # Error codes from the server
@@ -60,6 +63,7 @@ async def replay_recording(url: str, room: str, rec: Recording, speed: float = 1
     t_start = now()
     try:
         seq = 0
+        known: set[int] = set()  # recorded avatars whose roster was sent
         while True:
             t0, first = now(), rec.times[0]
             for t, message in zip(rec.times, rec.messages, strict=True):
@@ -70,7 +74,8 @@ async def replay_recording(url: str, room: str, rec: Recording, speed: float = 1
                     return stats
                 if reader.done():
                     reader.result()  # the server went away: its SessionError
-                for part in split(message, seq):
+                sendable = _known_rows(message, known, stats)
+                for part in split(sendable, seq) if sendable is not None else ():
                     await session.send(part)
                     if isinstance(part, AvatarBatch):
                         stats.batches_sent += 1
@@ -86,6 +91,24 @@ async def replay_recording(url: str, room: str, rec: Recording, speed: float = 1
         stats.seconds = now() - t_start
         await stop_task(reader)
         await session.close()
+
+
+def _known_rows(message: RecordedMessage, known: set[int],
+                stats: ReplayStats) -> RecordedMessage | None:
+    """A roster as it is (noting its avatars in ``known``); a batch without the rows of
+    avatars whose roster has not been sent (counted as skipped), None if none is left."""
+    if isinstance(message, AvatarRoster):
+        known.update(info.avatar_id for info in message.avatars)
+        known.difference_update(message.removed)
+        return message
+    rows = [i for i, a in enumerate(message.avatar_ids.tolist()) if a in known]
+    stats.frames_skipped += message.size - len(rows)
+    if len(rows) == message.size:
+        return message
+    if not rows:
+        return None
+    return AvatarBatch.from_frames([message.frame(i) for i in rows],
+                                   t_sent=float(message.t_sent))
 
 
 def split(message: RecordedMessage, seq: int) -> Iterator[RecordedMessage]:

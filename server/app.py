@@ -430,11 +430,13 @@ class Session:
     # ------------------------------------------------------------------ replays
     async def _replay(self, ws: ServerConnection, conn_id: int, room: Room) -> None:
         """A recording's rosters and avatar batches published into the room
-        (``server.replay``); its avatars leave with it. Batches take a player's frame
-        budget, rosters a player's calibration budget with a room's worth of burst."""
+        (``server.replay``); its avatars leave with it. Each of its avatars has a player's
+        frame budget (a recorded room's players were out of step: a batch each), rosters
+        a player's calibration budget with a room's worth of burst."""
         limits = self.limits
         avatars = ReplayedAvatars(room, lambda: next(self._ids), limits, self.metrics)
-        frames = frame_budget(limits, limits.frames_per_s)
+        frames_per_s = limits.frames_per_s
+        frames = frame_budget(limits, frames_per_s)
         rosters = Budget(limits.calibrations_per_s, limits.players_per_room)
         try:
             await ws.send(encode(Welcome(protocol_version=PROTOCOL_VERSION,
@@ -445,13 +447,16 @@ class Session:
                 try:
                     msg = decode(data, max_bytes=MAX_CLIENT_MESSAGE_BYTES)
                     if isinstance(msg, AvatarBatch):
-                        if not frames.take(t_received):
-                            raise self._limited("frames", limits.frames_per_s)
+                        if not frames.take(t_received, msg.size):
+                            raise self._limited("frames", frames_per_s)
                         avatars.batch(msg, t_received)
                     elif isinstance(msg, AvatarRoster):
                         if not rosters.take(t_received):
                             raise self._limited("calibrations", limits.calibrations_per_s)
                         avatars.roster(msg)
+                        if frames_per_s != limits.frames_per_s * max(1, len(avatars.ids)):
+                            frames_per_s = limits.frames_per_s * max(1, len(avatars.ids))
+                            frames = frame_budget(limits, frames_per_s)
                     elif isinstance(msg, Ping | Leave):
                         await self._common(ws, msg, t_received, "replay")
                     else:

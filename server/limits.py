@@ -154,14 +154,15 @@ class Budget:
         """Whether ``take(t)`` would succeed; spends nothing."""
         return t >= self.refill_at or self.left > 0
 
-    def take(self, t: float) -> bool:
-        """Spend one message at time ``t`` (seconds); False when none is left."""
+    def take(self, t: float, n: int = 1) -> bool:
+        """Spend ``n`` messages at time ``t`` (seconds); False (nothing spent) when fewer
+        are left."""
         if t >= self.refill_at:
             self.left = self.burst
             self.refill_at = t + self.window
             self.refused = 0
-        if self.left <= 0:
+        if self.left < n:
             self.refused += 1
             return False
-        self.left -= 1
+        self.left -= n
         return True

@@ -242,3 +242,28 @@ def test_an_exported_bvh_reads_back_as_the_recording_moved(tmp_path: Path) -> No
         index = [motion.skeleton.names.index(n) for n in sk.names]
         worst = max(worst, float(np.abs(read[:, index] - recorded).max()))
     assert worst < 0.0005
+
+
+def test_poses_recorded_before_their_skeleton_are_left_out(tmp_path: Path) -> None:
+    """A server may send a new avatar's first pose before its roster: the replay leaves
+    that pose out (no spectator could draw it) instead of having it refused."""
+    from test_recording import batch, skeleton
+
+    path = tmp_path / "early.pcrec"
+    with RecordingWriter(path, "r", "ws://x") as w:
+        w.add(0.0, AvatarRoster(avatars=(skeleton(1, "ann"),)))
+        w.add(0.01, batch([1, 2], 10.0))  # bob's pose before bob's skeleton
+        w.add(0.02, AvatarRoster(avatars=(skeleton(2, "bob"),)))
+        w.add(0.03, batch([1, 2], 10.01))
+        w.add(0.04, batch([2], 10.02))
+    rec = read_recording(path)
+
+    server = Session()
+
+    async def main() -> tuple[int, int]:
+        async with serving(server) as url:
+            stats = await replay_recording(url, "r", rec)
+            return stats.frames_sent, stats.frames_skipped
+
+    assert asyncio.run(main()) == (4, 1)
+    assert server.metrics.frames_replayed == 4 and not server.metrics.rejected
