@@ -74,6 +74,15 @@ BAD_ARGUMENTS: list[tuple[list[str], str]] = [
     (["demo", "--players", "-1"], "--players"),
     (["demo", "--seconds", "0"], "--seconds"),
     (["--log-level", "loud", "eval"], "--log-level"),
+    (["record", "--server", URL, "--room", "r", "--out", "{file}"], "--out"),
+    (["record", "--server", URL, "--room", "r", "--out", "/no/such/dir/r.pcrec"], "--out"),
+    (["record", "--server", URL, "--room", "r", "--out", "x.pcrec", "--seconds", "0"],
+     "--seconds"),
+    (["replay", "/no/such.pcrec", "--server", URL, "--room", "r"], "FILE"),
+    (["replay", "{file}", "--server", URL, "--room", "r", "--speed", "0"], "--speed"),
+    (["export", "{file}", "--bvh", "{file}"], "--bvh"),
+    (["export", "{file}", "--bvh", "out", "--fps", "-30"], "--fps"),
+    (["play", "--server", URL, "--room", "r", "--record", "{file}"], "--record"),
 ]
 
 
@@ -101,7 +110,8 @@ def test_a_bad_value_is_one_line_naming_the_option(argv: list[str], option: str,
     assert exit_info.value.code == 2
     captured = capsys.readouterr()
     command = " ".join(a for a in argv[:2] if not a.startswith("-") and a in (
-        "play", "view", "eval", "serve", "demo", "bench", "render", "solver"))
+        "play", "view", "eval", "serve", "demo", "bench", "render", "solver", "record",
+        "replay", "export"))
     _one_line(captured.err, command, option)
     assert captured.out == ""
 
@@ -299,11 +309,11 @@ def _closed_port() -> int:
         return int(s.getsockname()[1])
 
 
-@pytest.mark.parametrize("command", ["play", "view"])
+@pytest.mark.parametrize("command", ["play", "view", "record"])
 def test_an_unreachable_server_is_one_line(command: str, tmp_path: Path) -> None:
     url = f"ws://127.0.0.1:{_closed_port()}"
-    extra = ["--source", CLIP] if command == "play" else ["--headless", "--out",
-                                                            str(tmp_path / "png")]
+    extra = {"play": ["--source", CLIP], "record": ["--out", str(tmp_path / "r.pcrec")],
+             "view": ["--headless", "--out", str(tmp_path / "png")]}[command]
     code, out, err = Command(command, "--server", url, "--room", "r", *extra,
                              cwd=tmp_path).finish()
     assert code == 1 and "Traceback" not in err + out
