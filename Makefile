@@ -6,8 +6,17 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+TEST_STAMP := $(VENV)/.installed-for-tests
+# the browser spectator: client/web's sources bundled by esbuild (from npm) into
+# server/static, which `posecast serve` sends and the wheel ships
+WEB := client/web
+WEB_BUILT := server/static/index.html
+WEB_SOURCES := $(wildcard $(WEB)/src/*) $(WEB)/build.mjs $(WEB)/package.json \
+	$(WEB)/package-lock.json
+NO_NODE := posecast: building the browser spectator needs Node.js 18+ and npm, and there \
+	is no npm here: install them (Debian/Ubuntu: apt-get install nodejs npm) and run make again
 
-.PHONY: demo test lint setup clean
+.PHONY: demo test lint setup clean web
 
 $(STAMP): pyproject.toml deploy/bootstrap.sh
 	PYTHON=$(PYTHON) sh deploy/bootstrap.sh
@@ -17,8 +26,19 @@ $(STAMP): pyproject.toml deploy/bootstrap.sh
 
 # compile the solver kernels into numba's on-disk cache, so that no command a person types
 # waits for them (a second or so when they are cached already)
-setup: $(STAMP)
+setup: $(STAMP) $(WEB_BUILT)
 	$(VENV)/bin/posecast warm
+
+web: $(WEB_BUILT)
+
+$(WEB_BUILT): $(WEB_SOURCES) | $(STAMP)
+	@command -v npm >/dev/null 2>&1 || { echo "$(NO_NODE)" >&2; exit 1; }
+	cd $(WEB) && npm ci --no-audit --no-fund --loglevel=error && node build.mjs
+
+# what the tests need besides (Chromium for the browser spectator's)
+$(TEST_STAMP): deploy/bootstrap.sh
+	PYTHON=$(PYTHON) sh deploy/bootstrap.sh test
+	touch $(TEST_STAMP)
 
 demo: setup
 	$(VENV)/bin/posecast demo
@@ -27,8 +47,8 @@ lint: setup
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/mypy
 
-test: lint
+test: lint $(TEST_STAMP)
 	$(VENV)/bin/pytest
 
 clean:
-	rm -rf $(VENV) build *.egg-info
+	rm -rf $(VENV) build *.egg-info $(WEB)/node_modules server/static

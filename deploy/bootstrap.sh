@@ -24,22 +24,35 @@ else
     $SUDO apt-get install -y -qq python3-venv python3-pip
 fi
 [ -x .venv/bin/python ] || "$PYTHON" -m venv .venv
-# Headless OpenGL for the viewer: moderngl renders through EGL, with Mesa's software
-# rasterizer (llvmpipe) where there is no GPU. Install what is missing (Debian/Ubuntu).
-GL_MISSING=""
-for pkg in libegl1 libgl1 libgl1-mesa-dri; do
-    dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "ok installed" \
-        || GL_MISSING="$GL_MISSING $pkg"
-done
-if [ -n "$GL_MISSING" ]; then
-    if command -v apt-get >/dev/null 2>&1; then
-        SUDO=""
-        [ "$(id -u)" -ne 0 ] && SUDO="sudo"
-        echo "installing$GL_MISSING (headless OpenGL for the viewer)"
-        $SUDO apt-get update -qq
-        $SUDO apt-get install -y -qq $GL_MISSING
-    else
-        echo "warning: the viewer needs EGL, OpenGL and Mesa's drivers (on Debian/Ubuntu:" \
-             "libegl1 libgl1 libgl1-mesa-dri); headless rendering will fail without them"
+# Install the Debian/Ubuntu packages named that are missing ($1: what they are for).
+install_missing() {
+    why=$1
+    shift
+    MISSING=""
+    for pkg in "$@"; do
+        dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "ok installed" \
+            || MISSING="$MISSING $pkg"
+    done
+    [ -n "$MISSING" ] || return 0
+    if ! command -v apt-get >/dev/null 2>&1; then
+        echo "warning: install$MISSING ($why): this machine has no apt-get" >&2
+        return 0
     fi
+    SUDO=""
+    [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+    echo "installing$MISSING ($why)"
+    $SUDO apt-get update -qq
+    $SUDO apt-get install -y -qq $MISSING
+}
+# Headless OpenGL for the viewer: moderngl renders through EGL, with Mesa's software
+# rasterizer (llvmpipe) where there is no GPU.
+install_missing "headless OpenGL for the viewer" libegl1 libgl1 libgl1-mesa-dri
+# Node.js and npm build the browser spectator (client/web) at setup; a machine that has
+# them already (another distribution's packages, nvm) keeps its own
+if ! command -v npm >/dev/null 2>&1; then
+    install_missing "Node.js and npm, to build the browser spectator" nodejs npm
+fi
+# `bootstrap.sh test`: what the test suite needs besides, Chromium for the browser tests
+if [ "${1:-}" = "test" ] && ! command -v chromium >/dev/null 2>&1; then
+    install_missing "Chromium, for the browser spectator's tests" chromium
 fi

@@ -1,10 +1,11 @@
-"""Plain HTTP on the websocket port: ``GET /healthz`` and ``GET /metrics``.
+"""Plain HTTP on the websocket port: ``GET /healthz``, ``GET /metrics`` and the browser
+spectator (``/``, its files: ``server.web``).
 
 websockets hands every opening request to ``HttpRoutes`` (its ``process_request`` hook)
 before the handshake: a websocket upgrade goes on as before, on any path; any other
 request is answered from the route table and the connection closed. A route is a path
-and a function of no arguments, so a page (e.g. ``/``, a browser spectator) is one more
-entry of ``session_routes``.
+and a function of no arguments; paths are looked up whole, so no request names a file
+the table does not hold.
 """
 
 from __future__ import annotations
@@ -32,6 +33,10 @@ class Reply:
     body: bytes
     content_type: str
     status: http.HTTPStatus = http.HTTPStatus.OK
+    cache: str = "no-store"  # Cache-Control: by default nothing keeps it (health, metrics)
+    # with it, a request whose If-None-Match names it gets 304 and no body
+    etag: str | None = None
+    headers: tuple[tuple[str, str], ...] = ()
 
 
 Route = Callable[[], Reply]
@@ -54,19 +59,24 @@ class HttpRoutes:
             return None  # a websocket client: the handshake goes on
         route = self.routes.get(urlsplit(request.path).path)
         if route is None:
-            reply = _text(http.HTTPStatus.NOT_FOUND,
-                          f"no such page; try {', '.join(sorted(self.routes))}\n")
+            pages = sorted(p for p in self.routes if not p.startswith("/static/"))
+            reply = _text(http.HTTPStatus.NOT_FOUND, f"no such page; try {', '.join(pages)}\n")
         elif request.method != "GET":
             reply = _text(http.HTTPStatus.METHOD_NOT_ALLOWED,
                           f"{request.method} is not allowed here: GET only\n")
         else:
             reply = route()
+            if reply.etag is not None and _matches(request, reply.etag):
+                return _response(reply, not_modified=True)
         return _response(reply)
 
 
 def session_routes(session: Session) -> HttpRoutes:
     """The routes of ``posecast serve``."""
+    from posecast.server.web import web_routes  # here: server.web builds on this module
+
     return HttpRoutes({
+        **web_routes(),  # the browser spectator: /, /avatar.json, /static/...
         "/healthz": lambda: health(session),
         "/metrics": Reused(lambda: Reply(metrics_text(session.registry), CONTENT_TYPE),
                            METRICS_MAX_AGE_S),
@@ -108,10 +118,22 @@ def _text(status: http.HTTPStatus, text: str) -> Reply:
     return Reply(text.encode(), "text/plain; charset=utf-8", status)
 
 
-def _response(reply: Reply) -> Response:
+def _matches(request: Request, etag: str) -> bool:
+    """If-None-Match names ``etag`` (or is ``*``), weak or strong (RFC 9110 13.1.2)."""
+    wanted = ",".join(request.headers.get_all("If-None-Match"))
+    tags = {t.strip().removeprefix("W/") for t in wanted.split(",")}
+    return etag in tags or "*" in tags
+
+
+def _response(reply: Reply, not_modified: bool = False) -> Response:
+    status = http.HTTPStatus.NOT_MODIFIED if not_modified else reply.status
+    body = b"" if not_modified else reply.body
     headers = Headers([("Content-Type", reply.content_type),
-                       ("Content-Length", str(len(reply.body))),
-                       ("Cache-Control", "no-store"), ("Connection", "close")])
+                       ("Content-Length", str(len(body))),
+                       ("Cache-Control", reply.cache), ("Connection", "close"),
+                       ("X-Content-Type-Options", "nosniff"), *reply.headers])
+    if reply.etag is not None:
+        headers["ETag"] = reply.etag
     if reply.status == http.HTTPStatus.METHOD_NOT_ALLOWED:
         headers["Allow"] = "GET"
-    return Response(reply.status.value, reply.status.phrase, headers, reply.body)
+    return Response(status.value, status.phrase, headers, body)

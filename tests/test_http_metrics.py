@@ -247,7 +247,7 @@ def test_unknown_paths_and_other_methods_and_websockets_on_the_same_port(
                 assert b"posecast_frames_solved_total 0.0" in reply.read()
             with pytest.raises(urllib.error.HTTPError) as refused:
                 await asyncio.to_thread(urllib.request.urlopen,
-                                        f"http://127.0.0.1:{port}/", None, TIMEOUT)
+                                        f"http://127.0.0.1:{port}/nowhere", None, TIMEOUT)
             assert refused.value.code == 404
             # its socket, closed (websockets waits for a client's close, up to 10 s)
             refused.value.close()

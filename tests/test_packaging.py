@@ -80,3 +80,18 @@ def test_version() -> None:
     import posecast
 
     assert posecast.__version__ == importlib.metadata.version("posecast")
+
+
+def test_the_wheel_ships_the_built_browser_spectator(wheel: zipfile.ZipFile) -> None:
+    """`make setup` builds client/web into server/static; the wheel holds the page and
+    every file it names, so an installed `posecast serve` serves it."""
+    import re
+
+    names = set(wheel.namelist())
+    static = "posecast/server/static/"
+    assert static + "index.html" in names, "no page in the wheel: run make setup first"
+    page = wheel.read(static + "index.html").decode()
+    named = re.findall(r'"/static/([^"]+)"', page)
+    assert {n.split("-")[0] for n in named} == {"app", "network"}
+    assert {static + n for n in named} <= names
+    assert static + "licenses.txt" in names

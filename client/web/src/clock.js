@@ -1,0 +1,59 @@
+// The offset from this page's clock to the server's, NTP style (protocol/clock.py).
+//
+// A Ping carries t0 (here), the Pong the server's t1 (received) and t2 (sent); t3 is its
+// arrival here. offset = ((t1 - t0) + (t2 - t3)) / 2 errs by at most half the round
+// trip, so of the last 32 samples (10 s at most) the median offset of the 3 with the
+// lowest round trip is taken. server time = local time + offset. Local time is
+// seconds since the epoch at performance.now()'s resolution: the same clock in the page
+// and in its network worker (each has its own performance.now() origin).
+
+export class ClockEstimator {
+  constructor(window = 32, useBest = 3, maxAge = 10.0) {
+    this.window = window;
+    this.useBest = useBest;
+    this.maxAge = maxAge;
+    this.samples = [];
+    this.offset = 0.0;
+    this.rtt = Infinity;
+  }
+
+  /** Record one exchange; false (and ignored) for a negative round trip. */
+  add(t0, t1, t2, t3) {
+    if (![t0, t1, t2, t3].every(Number.isFinite)) return false;
+    const sample = { offset: ((t1 - t0) + (t2 - t3)) / 2.0, rtt: (t3 - t0) - (t2 - t1), t: t3 };
+    if (sample.rtt < 0.0) return false;
+    this.samples.push(sample);
+    if (this.samples.length > this.window) this.samples.shift();
+    while (this.samples[0].t < sample.t - this.maxAge) this.samples.shift();
+    const best = [...this.samples].sort((a, b) => a.rtt - b.rtt).slice(0, this.useBest);
+    const offsets = best.map((s) => s.offset).sort((a, b) => a - b);
+    const mid = offsets.length >> 1;
+    this.offset = offsets.length % 2 ? offsets[mid] : (offsets[mid - 1] + offsets[mid]) / 2.0;
+    this.rtt = best[0].rtt;
+    return true;
+  }
+
+  reset() {
+    this.samples = [];
+    this.offset = 0.0;
+    this.rtt = Infinity;
+  }
+
+  get synced() {
+    return this.samples.length > 0;
+  }
+
+  toServer(tLocal) {
+    return tLocal + this.offset;
+  }
+}
+
+/** Seconds on this page's clock. */
+export function now() {
+  return (performance.timeOrigin + performance.now()) / 1000;
+}
+
+/** An event's timeStamp (milliseconds since its context's origin) on that clock. */
+export function eventTime(event) {
+  return (performance.timeOrigin + event.timeStamp) / 1000;
+}

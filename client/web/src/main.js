@@ -1,0 +1,232 @@
+// posecast's browser spectator: /?room=NAME joins the room as a spectator over the
+// websocket protocol, draws every avatar skinned with the desktop viewer's mesh, names
+// them, shows a latency HUD and reports what it presented to the server's /metrics.
+
+import "./style.css";
+import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
+import { now } from "./clock.js";
+import { ROOM_NAME_RULE, validRoomName } from "./protocol.js";
+import { LatencyWindow, Reporter } from "./report.js";
+import { Scene } from "./scene.js";
+import { SkeletonMismatch, bindSkeleton, fitAvatar } from "./skinning.js";
+
+const HUD_REFRESH_S = 0.25;
+const STATUS_ERROR_S = 5; // a server's Error stays on screen this long
+
+const params = new URLSearchParams(location.search);
+const room = params.get("room");
+const view = document.getElementById("view");
+const statusBox = document.getElementById("status");
+const hudBox = document.getElementById("hud");
+
+// what the page has done, for people (the HUD) and for tests (window.posecast)
+const stats = { phase: "loading", avatars: 0, drawn: 0, framesReceived: 0, framesPresented: 0,
+  badMessages: 0, reportsSent: 0, firstAvatarS: null, lastError: null };
+window.posecast = stats;
+
+function say(text, kind = "info") {
+  statusBox.textContent = text;
+  statusBox.className = kind;
+  statusBox.hidden = !text;
+}
+
+function askForRoom() {
+  say("Which room? Type its name, or open /?room=NAME.", "info");
+  const form = document.createElement("form");
+  form.method = "get";
+  const input = Object.assign(document.createElement("input"),
+    { name: "room", placeholder: "room name", required: true, autofocus: true });
+  form.append(input, Object.assign(document.createElement("button"), { textContent: "Watch" }));
+  statusBox.append(form);
+  stats.phase = "no room";
+}
+
+async function loadMesh() {
+  const reply = await fetch("/avatar.json");
+  if (!reply.ok) throw new Error(`/avatar.json: HTTP ${reply.status}`);
+  const doc = await reply.json();
+  const gltf = await new GLTFLoader().loadAsync(doc.mesh);
+  let mesh = null;
+  gltf.scene.traverse((o) => { if (o.isSkinnedMesh && !mesh) mesh = o; });
+  if (!mesh) throw new Error(`${doc.mesh} holds no skinned mesh`);
+  return { mesh, bind: bindSkeleton(doc) };
+}
+
+class Spectator {
+  constructor(scene, bind) {
+    this.scene = scene;
+    this.bind = bind;
+    this.latest = new Map(); // avatar id -> its newest frame, drawn or not
+    this.refused = new Set(); // avatars whose skeleton cannot wear the mesh
+    this.reporter = new Reporter();
+    this.received = new LatencyWindow();
+    this.presented = new LatencyWindow();
+    this.presents = [];
+    this.hudAt = -Infinity;
+    this.errorUntil = -Infinity;
+    this.clock = { synced: false, offset: 0, rtt: Infinity }; // the worker's, as it says
+    const url = document.querySelector('meta[name="posecast-network"]').content;
+    this.net = new Worker(url, { type: "module" });
+    this.net.onmessage = ({ data }) => this.onNetwork(data);
+    this.net.onerror = (event) => {
+      stats.phase = "failed";
+      say(`The page's network worker failed: ${event.message}`, "error");
+    };
+    const ws = `${location.protocol === "https:" ? "wss:" : "ws:"}//${location.host}/`;
+    this.net.postMessage({ type: "open", url: ws, room, name: "browser",
+      token: params.get("token") });
+  }
+
+  onNetwork(data) {
+    if (data.type === "message") this.onMessage(data.msg, data.tArrival);
+    else if (data.type === "clock") this.clock = { synced: true, offset: data.offset, rtt: data.rtt };
+    else if (data.type === "welcome") {
+      stats.phase = "joined";
+      this.clock = { synced: false, offset: 0, rtt: Infinity };
+    } else if (data.type === "status") {
+      stats.phase = data.kind === "error" ? "ended" : "reconnecting";
+      say(data.text, data.kind);
+    } else if (data.type === "bad_message") {
+      stats.badMessages += 1;
+      console.warn("posecast: dropped a message:", data.text);
+    }
+  }
+
+  leave() {
+    this.net.postMessage({ type: "leave" });
+  }
+
+  onMessage(msg, tArrival) {
+    if (msg.type === "avatar_roster") {
+      for (const id of msg.removed) this.forget(id);
+      for (const info of msg.avatars) this.adopt(info);
+    } else if (msg.type === "avatar_batch") {
+      this.onBatch(msg, tArrival);
+    } else if (msg.type === "error") {
+      stats.lastError = `${msg.code}: ${msg.message}`;
+      if (msg.code === "unknown_type") this.reporter.enabled = false; // an older server
+      say(`The server says ${stats.lastError}`, "error");
+      this.errorUntil = now() + STATUS_ERROR_S;
+    }
+  }
+
+  adopt(info) {
+    try {
+      this.scene.setAvatar(fitAvatar(this.bind, info));
+      this.refused.delete(info.avatarId);
+    } catch (err) {
+      if (!(err instanceof SkeletonMismatch)) throw err;
+      this.scene.removeAvatar(info.avatarId);
+      if (!this.refused.has(info.avatarId)) console.warn(`posecast: not drawing: ${err.message}`);
+      this.refused.add(info.avatarId);
+    }
+    this.latest.delete(info.avatarId); // a recalibrated avatar waits for its new frames
+  }
+
+  forget(id) {
+    this.scene.removeAvatar(id);
+    this.latest.delete(id);
+    this.refused.delete(id);
+  }
+
+  onBatch(batch, tArrival) {
+    const clock = this.clock;
+    let start = 0;
+    batch.avatarIds.forEach((id, b) => {
+      const avatar = this.scene.avatars.get(id);
+      stats.framesReceived += 1;
+      if (clock.synced) this.received.push(tArrival + clock.offset - batch.tCapture[b]);
+      if (avatar && avatar.fitted.jointCount === batch.counts[b]) {
+        this.latest.set(id, { rotations: batch.rotations, start,
+          root: batch.roots.subarray(3 * b, 3 * b + 3), tCapture: batch.tCapture[b],
+          tReceived: tArrival, drawn: false });
+      }
+      start += batch.counts[b];
+    });
+  }
+
+  frame() {
+    const fresh = [];
+    for (const [id, f] of this.latest) {
+      if (f.drawn) continue;
+      this.scene.poseAvatar(id, f.rotations, f.start, f.root);
+      f.drawn = true;
+      fresh.push(f);
+    }
+    this.scene.render();
+    const t = now(); // handed to the compositor: the page's "presented"
+    const clock = this.clock;
+    for (const f of fresh) {
+      this.reporter.add(f.tCapture, f.tReceived, t);
+      if (clock.synced) this.presented.push(t + clock.offset - f.tCapture);
+    }
+    stats.framesPresented += fresh.length;
+    stats.avatars = this.scene.avatars.size;
+    stats.drawn = [...this.scene.avatars.values()].filter((a) => a.mesh.visible).length;
+    if (stats.drawn && stats.firstAvatarS === null) stats.firstAvatarS = t;
+    const report = clock.synced ? this.reporter.take(t) : null;
+    if (report) {
+      this.net.postMessage({ type: "report", ...report });
+      stats.reportsSent = this.reporter.sent;
+    }
+    this.presents.push(t);
+    while (this.presents.length > 1 && this.presents[0] < t - 1) this.presents.shift();
+    this.updateStatus(t);
+    if (t - this.hudAt >= HUD_REFRESH_S) {
+      this.hudAt = t;
+      this.updateHud();
+    }
+  }
+
+  updateStatus(t) {
+    if (t < this.errorUntil || stats.phase === "ended" || stats.phase === "reconnecting") return;
+    if (stats.phase !== "joined") say(`Joining room ${room}...`);
+    else if (!stats.drawn) say(`Room ${room} has no players yet: waiting for someone to join.`);
+    else say("");
+  }
+
+  updateHud() {
+    const clock = this.clock;
+    const ms = (w, p) => (w.count ? (1000 * w.percentile(p)).toFixed(1).padStart(7) : "      -");
+    const fps = this.presents.length > 1 ? (this.presents.length - 1) /
+      (this.presents[this.presents.length - 1] - this.presents[0]) : 0;
+    hudBox.textContent = [
+      `room ${room}   ${stats.drawn} avatar${stats.drawn === 1 ? "" : "s"}   ${fps.toFixed(0)} fps`,
+      clock.synced ? `clock synced to the server's within ${(500 * clock.rtt).toFixed(2)} ms`
+        : "clock: syncing with the server",
+      "latency ms             p50      p99",
+      `capture->received  ${ms(this.received, 50)}  ${ms(this.received, 99)}`,
+      `capture->presented ${ms(this.presented, 50)}  ${ms(this.presented, 99)}`,
+    ].join("\n");
+  }
+}
+
+async function main() {
+  if (!room) {
+    askForRoom();
+    return;
+  }
+  if (!validRoomName(room)) {
+    say(`Cannot join "${room.slice(0, 80)}": ${ROOM_NAME_RULE}.`, "error");
+    stats.phase = "bad room";
+    return;
+  }
+  document.title = `posecast: ${room}`;
+  say(`Loading the avatar for room ${room}...`);
+  const { mesh, bind } = await loadMesh();
+  const scene = new Scene(view, mesh, bind);
+  const spectator = new Spectator(scene, bind);
+  stats.phase = "joining";
+  window.addEventListener("pagehide", () => spectator.leave());
+  const loop = () => {
+    spectator.frame();
+    requestAnimationFrame(loop);
+  };
+  requestAnimationFrame(loop);
+}
+
+main().catch((err) => {
+  stats.phase = "failed";
+  say(`The page failed: ${err.message}`, "error");
+  console.error(err);
+});

@@ -1,0 +1,221 @@
+// posecast's wire protocol in the browser: the messages a spectator sends and reads
+// (protocol/messages.py, protocol/batch.py, protocol/codec.py). msgpack maps with a
+// string `type`; float arrays as packed little-endian bytes; rotations in 5 bytes.
+//
+// Everything from the server is checked before use, as the Python viewer checks it:
+// a message that fails throws ProtocolError, and the page drops it and counts it.
+
+import { decode as unpack, encode as pack } from "@msgpack/msgpack";
+import { dequantizeRotations, RotationError } from "./quantize.js";
+
+export const PROTOCOL_VERSION = 1;
+export const MAX_MESSAGE_BYTES = 1 << 20; // what a viewer accepts (protocol.validation)
+export const MAX_JOINTS = 256;
+export const MAX_AVATARS = 1024;
+export const MAX_POSITION_M = 1000.0;
+export const MAX_REPORT_ROWS = 128; // protocol.messages.MAX_REPORT_ROWS
+// 1-64 letters, digits, '-', '_' or '.', starting with a letter or digit
+const ROOM_NAME = /^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$/;
+export const ROOM_NAME_RULE = "room names are 1-64 letters, digits, '-', '_' or '.', " +
+  "starting with a letter or digit";
+
+export class ProtocolError extends Error {}
+
+const LIMITS = {
+  maxStrLength: 4096, maxBinLength: MAX_MESSAGE_BYTES, maxArrayLength: 4096,
+  maxMapLength: 64, maxExtLength: 0,
+};
+
+export function validRoomName(name) {
+  return typeof name === "string" && ROOM_NAME.test(name);
+}
+
+// ------------------------------------------------------------------ client -> server
+export function encodeHello(room, name, token) {
+  const hello = { type: "hello", protocol_version: PROTOCOL_VERSION, role: "spectator",
+    room, display_name: name };
+  if (token) hello.token = token;
+  return pack(hello);
+}
+
+export function encodePing(t0) {
+  return pack({ type: "ping", t0 });
+}
+
+export function encodeLeave(reason = "") {
+  return pack({ type: "leave", reason });
+}
+
+/** A ViewerReport: three equal columns of server-clock seconds, 1..MAX_REPORT_ROWS. */
+export function encodeViewerReport(tCapture, tReceived, tPresented) {
+  const n = tCapture.length;
+  if (n < 1 || n > MAX_REPORT_ROWS || tReceived.length !== n || tPresented.length !== n) {
+    throw new RangeError(`a report holds 1-${MAX_REPORT_ROWS} rows of three equal columns`);
+  }
+  return pack({ type: "viewer_report", t_capture: packF64(tCapture),
+    t_received: packF64(tReceived), t_presented: packF64(tPresented) });
+}
+
+function packF64(values) {
+  const out = new Uint8Array(8 * values.length);
+  const view = new DataView(out.buffer);
+  values.forEach((v, i) => view.setFloat64(8 * i, v, true));
+  return out;
+}
+
+// ------------------------------------------------------------------ server -> client
+/** Bytes -> a checked message: {type: "welcome" | "avatar_roster" | "avatar_batch" |
+ * "pong" | "error", ...}. Throws ProtocolError. */
+export function decodeMessage(data) {
+  const bytes = data instanceof Uint8Array ? data : new Uint8Array(data);
+  if (bytes.length > MAX_MESSAGE_BYTES) {
+    throw new ProtocolError(`message of ${bytes.length} bytes; the limit is ${MAX_MESSAGE_BYTES}`);
+  }
+  let msg;
+  try {
+    msg = unpack(bytes, LIMITS);
+  } catch (err) {
+    throw new ProtocolError(`not a msgpack message (${err.message})`);
+  }
+  if (!isMap(msg) || typeof msg.type !== "string") {
+    throw new ProtocolError("expected a map with a string 'type'");
+  }
+  const read = READERS[msg.type];
+  if (!read) throw new ProtocolError(`unknown message type ${JSON.stringify(msg.type)}`);
+  return read(msg);
+}
+
+const READERS = {
+  welcome(m) {
+    need(m.protocol_version === PROTOCOL_VERSION,
+      `welcome: protocol version ${m.protocol_version}; this page speaks ${PROTOCOL_VERSION}`);
+    return { type: "welcome", connectionId: count(m.connection_id, "welcome.connection_id"),
+      serverTime: time(m.server_time, "welcome.server_time") };
+  },
+  pong(m) {
+    const t = [time(m.t0, "pong.t0"), time(m.t1, "pong.t1"), time(m.t2, "pong.t2")];
+    need(t[2] >= t[1], "pong: t2 is before t1");
+    return { type: "pong", t0: t[0], t1: t[1], t2: t[2] };
+  },
+  error(m) {
+    return { type: "error", code: text(m.code, "error.code", 64),
+      message: text(m.message, "error.message", 1024) };
+  },
+  avatar_roster(m) {
+    const avatars = list(m.avatars ?? [], "avatar_roster.avatars", MAX_AVATARS).map(avatarInfo);
+    const removed = list(m.removed ?? [], "avatar_roster.removed", MAX_AVATARS)
+      .map((id, i) => count(id, `avatar_roster.removed[${i}]`));
+    return { type: "avatar_roster", avatars, removed };
+  },
+  avatar_batch: avatarBatch,
+};
+
+function avatarInfo(a, index) {
+  const where = `avatar_roster.avatars[${index}]`;
+  need(isMap(a), `${where}: not a map`);
+  const names = list(a.joint_names, `${where}.joint_names`, MAX_JOINTS)
+    .map((n, j) => text(n, `${where}.joint_names[${j}]`, 64));
+  const J = names.length;
+  need(J >= 1 && new Set(names).size === J, `${where}.joint_names: empty or repeated`);
+  const parents = list(a.parents, `${where}.parents`, MAX_JOINTS);
+  need(parents.length === J && parents[0] === -1 &&
+    parents.every((p, j) => j === 0 || (Number.isInteger(p) && p >= 0 && p < j)),
+  `${where}.parents: must list each joint's parent before it, the root first (-1)`);
+  const offsets = f64(a.rest_offsets, `${where}.rest_offsets`);
+  need(offsets.length === 3 * J && offsets.every((v) => Math.abs(v) <= MAX_POSITION_M),
+    `${where}.rest_offsets: ${J} finite rows of 3 expected`);
+  return { avatarId: count(a.avatar_id, `${where}.avatar_id`),
+    displayName: text(a.display_name, `${where}.display_name`, 64),
+    jointNames: names, parents, restOffsets: offsets };
+}
+
+const BATCH_COLUMNS = { avatar_ids: 8, seqs: 8, roots: 12, joint_counts: 2, t_capture: 8,
+  t_server_receive: 8, t_solved: 8 };
+
+/** An AvatarBatch checked whole: columns of one row per avatar; rotations (J_b per avatar,
+ * 4 numbers each) in one Float64Array. */
+function avatarBatch(m) {
+  for (const name of [...Object.keys(BATCH_COLUMNS), "rotations"]) {
+    need(m[name] instanceof Uint8Array, `avatar_batch.${name}: expected packed bytes`);
+  }
+  const n = m.avatar_ids.length / 8;
+  need(Number.isInteger(n) && n <= MAX_AVATARS, "avatar_batch.avatar_ids: bad length");
+  for (const [name, size] of Object.entries(BATCH_COLUMNS)) {
+    need(m[name].length === n * size, `avatar_batch.${name}: ${m[name].length} bytes ` +
+      `for ${n} avatars`);
+  }
+  const ids = ints(m.avatar_ids, "avatar_batch.avatar_ids");
+  need(new Set(ids).size === n, "avatar_batch.avatar_ids: an avatar appears twice");
+  const seqs = ints(m.seqs, "avatar_batch.seqs");
+  const counts = Array.from({ length: n }, (_, b) => view(m.joint_counts).getUint16(2 * b, true));
+  need(counts.every((c) => c >= 1 && c <= MAX_JOINTS), "avatar_batch.joint_counts: out of 1-256");
+  const rootBytes = view(m.roots);
+  const roots = Float64Array.from({ length: 3 * n }, (_, i) => rootBytes.getFloat32(4 * i, true));
+  need(roots.every((v) => Math.abs(v) <= MAX_POSITION_M), "avatar_batch.roots: not finite " +
+    `or beyond ${MAX_POSITION_M} m`);
+  const total = counts.reduce((a, c) => a + c, 0);
+  need(m.rotations.length === 5 * total, `avatar_batch.rotations: ${m.rotations.length} bytes ` +
+    `for ${total} joints`);
+  let rotations;
+  try {
+    rotations = dequantizeRotations(m.rotations);
+  } catch (err) {
+    if (err instanceof RotationError) throw new ProtocolError(`avatar_batch.rotations: ${err.message}`);
+    throw err;
+  }
+  return { type: "avatar_batch", avatarIds: ids, seqs, counts, roots, rotations,
+    tCapture: f64(m.t_capture, "avatar_batch.t_capture"),
+    tServerReceive: f64(m.t_server_receive, "avatar_batch.t_server_receive"),
+    tSolved: f64(m.t_solved, "avatar_batch.t_solved"),
+    tSent: time(m.t_sent, "avatar_batch.t_sent") };
+}
+
+// ------------------------------------------------------------------ field checks
+function need(ok, why) {
+  if (!ok) throw new ProtocolError(why);
+}
+
+function isMap(v) {
+  return v !== null && typeof v === "object" && !Array.isArray(v) && !(v instanceof Uint8Array);
+}
+
+function view(bytes) {
+  return new DataView(bytes.buffer, bytes.byteOffset, bytes.byteLength);
+}
+
+function time(v, where) {
+  need(typeof v === "number" && Number.isFinite(v), `${where}: expected a finite time`);
+  return v;
+}
+
+function count(v, where) {
+  need(Number.isSafeInteger(v) && v >= 0, `${where}: expected an integer >= 0`);
+  return v;
+}
+
+function text(v, where, max) {
+  need(typeof v === "string" && v.length <= max, `${where}: expected text of <= ${max} chars`);
+  return v;
+}
+
+function list(v, where, max) {
+  need(Array.isArray(v) && v.length <= max, `${where}: expected a list of <= ${max} items`);
+  return v;
+}
+
+function f64(bytes, where) {
+  need(bytes instanceof Uint8Array && bytes.length % 8 === 0, `${where}: expected packed <f8`);
+  const v = view(bytes);
+  const out = Float64Array.from({ length: bytes.length / 8 }, (_, i) => v.getFloat64(8 * i, true));
+  need(out.every(Number.isFinite), `${where}: times must be finite`);
+  return out;
+}
+
+function ints(bytes, where) {
+  const v = view(bytes);
+  return Array.from({ length: bytes.length / 8 }, (_, i) => {
+    const value = v.getBigInt64(8 * i, true);
+    need(value >= 0n && value <= BigInt(Number.MAX_SAFE_INTEGER), `${where}[${i}]: out of range`);
+    return Number(value);
+  });
+}

@@ -1,0 +1,101 @@
+// The page's protocol, clock and skinning against Python's: tests/test_browser_js.py
+// writes what Python encodes and computes to POSECAST_JS_FIXTURE, runs this file with
+// node --test, then decodes in Python what this file writes to POSECAST_JS_OUT.
+import assert from "node:assert/strict";
+import { readFileSync, writeFileSync } from "node:fs";
+import { test } from "node:test";
+import { ClockEstimator } from "../src/clock.js";
+import {
+  decodeMessage, encodeHello, encodeLeave, encodePing, encodeViewerReport, ProtocolError,
+} from "../src/protocol.js";
+import { dequantizeRotations, RotationError } from "../src/quantize.js";
+import { bindSkeleton, boneMatrices, fitAvatar, labelAnchor, pose } from "../src/skinning.js";
+
+const path = process.env.POSECAST_JS_FIXTURE;
+const fixture = path ? JSON.parse(readFileSync(path, "utf8")) : null;
+const skip = fixture ? false : "run by pytest tests/test_browser_js.py (it writes the fixture)";
+const bytes = (hex) => Uint8Array.from(Buffer.from(hex, "hex"));
+
+test("rotations decode bit for bit as protocol/quantize.py decodes them", { skip }, () => {
+  for (const { wire, rotations } of fixture.rotations) {
+    const got = dequantizeRotations(bytes(wire));
+    assert.deepEqual(Array.from(got), rotations); // exact: the same double operations
+  }
+  for (const { wire, error } of fixture.bad_rotations) {
+    assert.throws(() => dequantizeRotations(bytes(wire)),
+      (err) => err instanceof RotationError && err.message === error);
+  }
+});
+
+test("server messages decode to Python's values", { skip }, () => {
+  const batch = decodeMessage(bytes(fixture.batch.wire));
+  const want = fixture.batch.values;
+  assert.equal(batch.type, "avatar_batch");
+  assert.deepEqual(batch.avatarIds, want.avatar_ids);
+  assert.deepEqual(batch.seqs, want.seqs);
+  assert.deepEqual(batch.counts, want.joint_counts);
+  assert.deepEqual(Array.from(batch.roots), want.roots);
+  assert.deepEqual(Array.from(batch.rotations), want.rotations);
+  for (const [js, py] of [["tCapture", "t_capture"], ["tServerReceive", "t_server_receive"],
+    ["tSolved", "t_solved"]]) {
+    assert.deepEqual(Array.from(batch[js]), want[py]);
+  }
+  assert.equal(batch.tSent, want.t_sent);
+  const roster = decodeMessage(bytes(fixture.roster.wire));
+  assert.deepEqual(roster.removed, fixture.roster.removed);
+  assert.equal(roster.avatars.length, 1);
+  const [info] = roster.avatars;
+  assert.equal(info.displayName, fixture.roster.display_name);
+  assert.deepEqual(info.jointNames, fixture.roster.joint_names);
+  assert.deepEqual(info.parents, fixture.roster.parents);
+  assert.deepEqual(Array.from(info.restOffsets), fixture.roster.rest_offsets);
+  assert.deepEqual(decodeMessage(bytes(fixture.pong)), { type: "pong", t0: 1.5, t1: 2.25, t2: 2.5 });
+  assert.deepEqual(decodeMessage(bytes(fixture.error)),
+    { type: "error", code: "invalid", message: "hello.room: no" });
+  assert.equal(decodeMessage(bytes(fixture.welcome)).type, "welcome");
+});
+
+test("malformed server messages are refused with a ProtocolError", { skip }, () => {
+  for (const { wire, words } of fixture.bad_messages) {
+    assert.throws(() => decodeMessage(bytes(wire)),
+      (err) => err instanceof ProtocolError && err.message.includes(words), words);
+  }
+});
+
+test("the clock estimate follows protocol/clock.py sample by sample", { skip }, () => {
+  const clock = new ClockEstimator();
+  for (const { sample, accepted, offset, rtt } of fixture.clock) {
+    assert.equal(clock.add(...sample), accepted);
+    assert.equal(clock.offset, offset);
+    assert.equal(clock.rtt, rtt ?? Infinity); // JSON has no infinity: null before a sample
+  }
+});
+
+test("the mesh is fitted and posed as the desktop viewer fits and poses it", { skip }, () => {
+  const bind = bindSkeleton(fixture.avatar_json);
+  const roster = decodeMessage(bytes(fixture.skinning.roster));
+  const fitted = fitAvatar(bind, roster.avatars[0]);
+  const { rotations, root, matrices, anchor } = fixture.skinning;
+  const posed = pose(bind, fitted, Float64Array.from(rotations.flat()), 0, Float64Array.from(root));
+  const got = boneMatrices(bind, fitted, posed);
+  matrices.forEach((m, j) => {
+    for (let r = 0; r < 4; r++) {
+      for (let c = 0; c < 4; c++) {
+        const diff = Math.abs(got[16 * j + 4 * c + r] - m[r][c]);
+        assert.ok(diff < 1e-9, `joint ${j} [${r}][${c}]: ${got[16 * j + 4 * c + r]} vs ${m[r][c]}`);
+      }
+    }
+  });
+  labelAnchor(bind, fitted, posed).forEach((v, k) => assert.ok(Math.abs(v - anchor[k]) < 1e-9));
+});
+
+test("client messages are encoded for Python to decode", { skip }, () => {
+  const out = {
+    hello: Buffer.from(encodeHello("lab-1", "browser", "a.token")).toString("hex"),
+    ping: Buffer.from(encodePing(12.375)).toString("hex"),
+    leave: Buffer.from(encodeLeave("page closed")).toString("hex"),
+    report: Buffer.from(encodeViewerReport([1.0, 2.5], [1.25, 2.75], [1.5, 3.0])).toString("hex"),
+  };
+  assert.throws(() => encodeViewerReport([], [], []), RangeError);
+  writeFileSync(process.env.POSECAST_JS_OUT, JSON.stringify(out));
+});

@@ -1,0 +1,208 @@
+"""The browser spectator's JavaScript against the Python it mirrors, run by Node's own
+test runner (client/web/test/wire.test.mjs): rotations decoded bit for bit as
+protocol/quantize.py decodes them, whole server messages, the clock estimator sample by
+sample, the mesh fitted and posed as the desktop viewer does it; and the messages the
+page sends, decoded here."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+from pathlib import Path
+
+import msgpack
+import numpy as np
+import pytest
+from conftest import REPO_ROOT
+
+from posecast.client.viewer.skinning import fit_avatar, pose_matrices
+from posecast.protocol import (
+    PROTOCOL_VERSION,
+    AvatarBatch,
+    AvatarInfo,
+    AvatarRoster,
+    ClockEstimator,
+    Error,
+    Hello,
+    Leave,
+    Ping,
+    Pong,
+    ViewerReport,
+    Welcome,
+    decode,
+    decode_client,
+    dequantize_rotations,
+    encode,
+    quantize_rotations,
+)
+from posecast.server.web import avatar_document
+from posecast.solver import rotations as R
+from posecast.solver.readers.gltf import load_makehuman
+
+WEB = REPO_ROOT / "client" / "web"
+NODE_TIMEOUT = 120.0  # seconds: node starts in well under one
+
+
+def unit(rng: np.random.Generator, n: int) -> np.ndarray:
+    q = rng.normal(size=(n, 4))
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def rotation_cases(rng: np.random.Generator) -> list[dict[str, object]]:
+    h = 0.5**0.5
+    corners = np.array([[0, 0, 0, 1], [0, 0, 0, -1], [1, 0, 0, 0], [0, h, 0, h],
+                        [0.5, 0.5, 0.5, 0.5], [-0.5, 0.5, -0.5, 0.5], [h, h, 0, 0],
+                        [0.1, -0.7, 0.7, 0.1]])
+    cases = [unit(rng, 200), corners / np.linalg.norm(corners, axis=1, keepdims=True)]
+    out = []
+    for q in cases:
+        wire = quantize_rotations(q)
+        out.append({"wire": wire.hex(), "rotations": dequantize_rotations(wire).ravel().tolist()})
+    return out
+
+
+def bad_rotations() -> list[dict[str, str]]:
+    good = bytearray(quantize_rotations([[0, 0, 0, 1], [0, 0, 0, 1]]))
+    spare = bytearray(good)
+    spare[9] |= 0x40  # joint 1's bit 38
+    # joint 0: three kept components of 4094 each, 3 x 1/2 > 3/4
+    word = (3 << 36) | (4094 << 24) | (4094 << 12) | 4094
+    big = word.to_bytes(5, "little") + bytes(good[5:])
+    out = []
+    for data in (bytes(spare), big, bytes(good[:7])):
+        try:
+            dequantize_rotations(data)
+        except ValueError as err:
+            out.append({"wire": data.hex(), "error": str(err)})
+    assert len(out) == 3
+    return out
+
+
+def batch_case(rng: np.random.Generator) -> dict[str, object]:
+    batch = AvatarBatch.from_arrays(
+        [3, 11], [7, 2**40], np.array([[0.5, 0.9, -1.25], [1e-3, 1.0, 2.0]]),
+        [unit(rng, 53), unit(rng, 3)], [10.25, 10.5], [10.3, 10.6], [10.4, 10.7], 10.8)
+    wire = encode(batch)
+    got = decode(wire)
+    assert isinstance(got, AvatarBatch)
+    return {"wire": wire.hex(), "values": {
+        "avatar_ids": got.avatar_ids.tolist(), "seqs": got.seqs.tolist(),
+        "joint_counts": got.joint_counts.tolist(), "roots": got.roots.ravel().tolist(),
+        "rotations": got.rotations.ravel().tolist(), "t_capture": got.t_capture.tolist(),
+        "t_server_receive": got.t_server_receive.tolist(),
+        "t_solved": got.t_solved.tolist(), "t_sent": got.t_sent}}
+
+
+def bad_messages(batch_wire: bytes) -> list[dict[str, str]]:
+    obj = msgpack.unpackb(batch_wire)
+    short = dict(obj, rotations=obj["rotations"][:-5])
+    far = dict(obj, roots=np.array([[0, 0, 0], [0, 1e4, 0]], "<f4").tobytes())
+    nan = dict(obj, t_capture=np.array([1.0, np.nan]).tobytes())
+    twice = dict(obj, avatar_ids=np.array([3, 3], "<i8").tobytes())
+    cases = [(short, "avatar_batch.rotations"), (far, "avatar_batch.roots"),
+             (nan, "avatar_batch.t_capture"), (twice, "appears twice"),
+             ({"type": "nonsense"}, "unknown message type"), ([1, 2], "a map with")]
+    out = [{"wire": msgpack.packb(m, use_bin_type=True).hex(), "words": w} for m, w in cases]
+    return [*out, {"wire": batch_wire[:-3].hex(), "words": "not a msgpack message"}]
+
+
+def clock_cases(rng: np.random.Generator) -> list[dict[str, object]]:
+    clock, out = ClockEstimator(), []
+    for i in range(60):  # more than the window, and older than its age limit
+        t0 = 0.5 * i + rng.uniform(0, 0.01)
+        rtt = rng.uniform(-0.001, 0.02)  # now and then a bogus, negative one
+        t1 = t0 + 100.0 + rng.uniform(0, max(rtt, 0))
+        t2 = t1 + rng.uniform(0, 1e-4)
+        t3 = t0 + rtt + (t2 - t1)
+        accepted = clock.add(t0, t1, t2, t3)
+        out.append({"sample": [t0, t1, t2, t3], "accepted": accepted,
+                    "offset": clock.offset, "rtt": clock.rtt if clock.synced else None})
+    return out
+
+
+def skinning_case(rng: np.random.Generator) -> dict[str, object]:
+    mesh = load_makehuman()
+    sk = mesh.skeleton
+    # a person of another build: each bone 0.8-1.25 times the template's; its joints
+    # listed breadth first, not in the mesh's order (the page matches them by name)
+    order = np.array(sorted(range(sk.num_joints), key=lambda j: (depth(sk.parents, j), j)))
+    position = np.argsort(order)
+    offsets = sk.offsets * rng.uniform(0.8, 1.25, size=(sk.num_joints, 1))
+    info = AvatarInfo(avatar_id=4, display_name="ada",
+                      joint_names=tuple(sk.names[j] for j in order),
+                      parents=tuple(int(position[sk.parents[j]]) if j else -1 for j in order),
+                      rest_offsets=offsets[order])
+    fitted = fit_avatar(mesh, info)
+    rotations = unit(rng, sk.num_joints)  # in the avatar's order
+    root = np.array([0.3, 0.95, -0.2])
+    ident = np.broadcast_to(np.eye(4), (sk.num_joints, 4, 4))
+    matrices, gq, gp = pose_matrices([fitted], mesh, [rotations], [root])
+    a = pose_matrices([fitted], load_without_binds(mesh, ident), [rotations], [root])[0][0]
+    h = sk.index("head")
+    top = gp[0, h] + R.rotate(gq[0, h], fitted.fit[h] @ sk.tips[h]) + [0.0, 0.12, 0.0]
+    assert matrices.shape[0] == 1
+    return {"roster": encode(AvatarRoster(avatars=(info,))).hex(),
+            "rotations": rotations.tolist(), "root": root.tolist(),
+            "matrices": a.tolist(), "anchor": top.tolist()}
+
+
+def depth(parents: np.ndarray, j: int) -> int:
+    return 0 if j == 0 else 1 + depth(parents, int(parents[j]))
+
+
+def load_without_binds(mesh, inverse_bind):  # type: ignore[no-untyped-def]
+    """The mesh with identity inverse binds: its joint matrices are the bones' A_j."""
+    import dataclasses
+
+    return dataclasses.replace(mesh, inverse_bind=np.asarray(inverse_bind, np.float32))
+
+
+@pytest.fixture(scope="module")
+def node() -> str:
+    path = shutil.which("node")
+    if path is None:
+        pytest.skip("no node on this machine: the page's JavaScript tests need Node.js "
+                    "(apt-get install nodejs npm; make setup)")
+    if not (WEB / "node_modules" / "@msgpack" / "msgpack").is_dir():
+        pytest.fail("client/web/node_modules is missing: run make setup (npm ci)")
+    return path
+
+
+def test_the_pages_javascript_speaks_the_python_protocol(node: str, tmp_path: Path) -> None:
+    rng = np.random.default_rng(18)
+    batch = batch_case(rng)
+    fixture = {
+        "rotations": rotation_cases(rng), "bad_rotations": bad_rotations(), "batch": batch,
+        "bad_messages": bad_messages(bytes.fromhex(batch["wire"])),  # type: ignore[arg-type]
+        "roster": roster_case(), "clock": clock_cases(rng), "skinning": skinning_case(rng),
+        "avatar_json": json.loads(avatar_document("/static/avatar.glb")),
+        "pong": encode(Pong(t0=1.5, t1=2.25, t2=2.5)).hex(),
+        "error": encode(Error(code="invalid", message="hello.room: no")).hex(),
+        "welcome": encode(Welcome(protocol_version=PROTOCOL_VERSION, connection_id=1,
+                                  avatar_id=None, server_time=5.0)).hex()}
+    given, written = tmp_path / "fixture.json", tmp_path / "out.json"
+    given.write_text(json.dumps(fixture))
+    proc = subprocess.run([node, "--test", str(WEB / "test" / "wire.test.mjs")],
+                          capture_output=True, text=True, timeout=NODE_TIMEOUT, cwd=WEB,
+                          env={"PATH": "/usr/bin:/bin", "POSECAST_JS_FIXTURE": str(given),
+                               "POSECAST_JS_OUT": str(written)})
+    assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-2000:]
+    assert "# fail 0" in proc.stdout and "# skipped 0" in proc.stdout, proc.stdout
+    sent = {k: bytes.fromhex(v) for k, v in json.loads(written.read_text()).items()}
+    assert decode_client(sent["hello"]) == Hello(
+        protocol_version=PROTOCOL_VERSION, role="spectator", room="lab-1",
+        display_name="browser", token="a.token")
+    assert decode_client(sent["ping"]) == Ping(t0=12.375)
+    assert decode_client(sent["leave"]) == Leave(reason="page closed")
+    assert decode_client(sent["report"]) == ViewerReport(
+        t_capture=[1.0, 2.5], t_received=[1.25, 2.75], t_presented=[1.5, 3.0])
+
+
+def roster_case() -> dict[str, object]:
+    info = AvatarInfo(avatar_id=9, display_name="Zoë 2", joint_names=("root", "a", "b"),
+                      parents=(-1, 0, 1),
+                      rest_offsets=np.array([[0.0, 1.0, 0.0], [0.1, 0.2, 0.3], [0, -0.4, 0]]))
+    return {"wire": encode(AvatarRoster(avatars=(info,), removed=(2, 5))).hex(),
+            "removed": [2, 5], "display_name": "Zoë 2", "joint_names": ["root", "a", "b"],
+            "parents": [-1, 0, 1], "rest_offsets": info.rest_offsets.ravel().tolist()}
