@@ -100,7 +100,9 @@ def bvh_text(skeleton: Skeleton, times: Array, roots: Array, rotations: Array,
     out.write("HIERARCHY\n")
     _write_joint(out, skeleton, names, 0, 0, units_per_metre)
     frames = motion.times.size
-    out.write(f"MOTION\nFrames: {frames}\nFrame Time: {1.0 / motion.fps:.10f}\n")
+    # the shortest text that reads back as the same float: 1 / it is the rate exactly,
+    # which Blender's "update scene FPS" turns into its frame rate
+    out.write(f"MOTION\nFrames: {frames}\nFrame Time: {1.0 / motion.fps!r}\n")
     angles = np.degrees(euler_zxy(motion.rotations[:, order]))  # (F, J, 3)
     values = np.concatenate([motion.roots * units_per_metre,
                              angles.reshape(frames, -1)], axis=1)

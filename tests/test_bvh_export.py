@@ -200,7 +200,7 @@ def test_the_file_is_laid_out_as_blender_and_three_js_parse_it(clip: Clip) -> No
     assert end_sites == sum(1 for j in range(sk.num_joints) if not sk.children(j))
     assert lines[i + 1] == ["Frames:", str(frames)]
     assert lines[i + 2][:2] == ["Frame", "Time:"] and len(lines[i + 2]) == 3
-    assert abs(1.0 / float(lines[i + 2][2]) - fps) < 1e-6
+    assert 1.0 / float(lines[i + 2][2]) == fps == 30.0  # exactly: Blender's scene rate
     rows = lines[i + 3:]
     assert len(rows) == frames
     assert all(len(r) == 6 + 3 * (len(joints) - 1) for r in rows)
