@@ -169,8 +169,8 @@ def check_named_avatars(image: np.ndarray, labels: list[dict[str, Any]]) -> None
         x0, x1 = int(label["left"]) - 80, int(label["right"]) + 80
         y0 = int(label["bottom"])
         below = mine[y0:y0 + VIEW_H // 2, max(x0, 0):x1]
-        # a body in full view: thousands of its colour just below the name
-        assert below.sum() > 1000, (label, int(below.sum()), int(mine.sum()))
+        # a body in view: hundreds of pixels of its colour (~1,500 at this size) below
+        assert below.sum() > 400, (label, int(below.sum()), int(mine.sum()))
         above = mine[:max(int(label["top"]), 0), max(x0, 0):x1]
         assert above.sum() < below.sum() / 10, label  # the name is above the body
 
