@@ -81,6 +81,8 @@ class Spectator {
     if (data.type === "message") this.onMessage(data.msg, data.tArrival);
     else if (data.type === "clock") this.clock = { synced: true, offset: data.offset, rtt: data.rtt };
     else if (data.type === "welcome") {
+      // (again, after a reconnect): the server's roster follows, whole
+      for (const id of [...this.scene.avatars.keys()]) this.forget(id);
       stats.phase = "joined";
       this.clock = { synced: false, offset: 0, rtt: Infinity };
     } else if (data.type === "status") {
