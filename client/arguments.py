@@ -281,6 +281,18 @@ def new_file(text: str) -> Path:
     return path
 
 
+def vmc_target(text: str) -> tuple[str, int]:
+    """A VMC receiver: HOST:PORT, HOST (port 39539) or [IPv6]:PORT."""
+    from posecast.client.vmc import VmcError, check_target, parse_target
+
+    try:
+        host, port = parse_target(text)
+        check_target(host, port)
+    except VmcError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+    return host, port
+
+
 def source(text: str) -> str:
     """openvr, or vive:FILE / bvh:FILE naming a file that exists."""
     kind, sep, path = text.partition(":")  # only the first colon: "vive:C:\\rec.csv"

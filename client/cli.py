@@ -312,6 +312,31 @@ def _parser() -> argparse.ArgumentParser:
                     help="the frame rate of the files (default: the recording's own, the "
                          "median rate rounded)")
 
+    vm = sub.add_parser("vmc", help="send one avatar of a room to a VMC receiver (VSeeFace, "
+                        "VNyan, Warudo, Unity)",
+                        description="Send one avatar of a room to a VMC protocol receiver "
+                        "(OSC over UDP: VSeeFace, VNyan, Warudo, Unity with EVMC4U) as it "
+                        "moves: root, the Unity humanoid bones, OK and time, one bundle a "
+                        "frame. " + STOPPED)
+    vm.add_argument("--server", required=True, type=arg.server_url,
+                    help="the server, ws://HOST:PORT (wss:// for TLS)")
+    vm.add_argument("--room", required=True, type=arg.room,
+                    help="the room to take the avatar from; " + ROOM_NAME_RULE)
+    vm.add_argument("--avatar", default=None, type=arg.display_name, metavar="NAME",
+                    help="the avatar's name (default: the room's first avatar)")
+    vm.add_argument("--to", default="127.0.0.1:39539", type=arg.vmc_target,
+                    metavar="HOST:PORT", help="the VMC receiver (39539: the protocol's port)")
+    vm.add_argument("--rate", type=arg.rate_hz, default=60.0,
+                    help="bundles per second at most (receivers choke above 200)")
+    vm.add_argument("--seconds", type=arg.positive_float, default=None,
+                    help="stop after this many seconds (default: until Ctrl-C)")
+    vm.add_argument("--cafile", type=arg.ca_file, default=None,
+                    help="PEM CA certificates to trust for a wss:// server (a private "
+                         "CA); default: the system's trust store")
+    vm.add_argument("--token", default=None, type=arg.token,
+                    help="a spectator's join token (posecast token), for a server with a "
+                         "secret")
+
     tk = sub.add_parser("token", help="print a join token for a server with a secret",
                         description="Print a join token (a JWT signed with the server's "
                         "secret) for one room and role; only the token goes to stdout, so "
@@ -556,6 +581,21 @@ def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
         from posecast.client.export_command import run_export
 
         return run_export(args.file, args.bvh, args.fps)
+    if args.command == "vmc":
+        from posecast.client.connection import SessionError
+        from posecast.client.vmc import VmcError
+        from posecast.client.vmc_command import run_vmc_command
+
+        if (status := _cafile_without_tls("vmc", args)) is not None:
+            return status
+        host, port = args.to
+        try:
+            return run_vmc_command(args.server, args.room, args.avatar, host, port,
+                                   args.seconds, args.rate, args.token, args.cafile)
+        except SessionError as err:
+            return _fail("vmc", _session_words(err))
+        except VmcError as err:
+            return _fail("vmc", err)
     if args.command == "serve":
         return _serve(args)
     if args.command == "play":

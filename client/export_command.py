@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 
 from posecast.client.recording import AvatarTake, avatar_takes, read_recording
+from posecast.client.skeletons import skeleton_of
 from posecast.solver.bvh_export import export_bvh
 from posecast.solver.readers.errors import FormatError
-from posecast.solver.skeleton import Skeleton
 
 _UNSAFE = re.compile(r"[^A-Za-z0-9_-]+")
 
@@ -35,7 +35,7 @@ def run_export(path: Path, out_dir: Path, fps: float | None) -> int:
         out_dir.mkdir(parents=True, exist_ok=True)
         for take, name in zip(takes, file_names(takes), strict=True):
             target = out_dir / name
-            done = export_bvh(target, take_skeleton(take), np.array(take.times),
+            done = export_bvh(target, skeleton_of(take.info), np.array(take.times),
                               np.array(take.roots), np.array(take.rotations), fps)
             seconds = (done.frames - 1) / done.fps
             print(f"{done.path}: {take.info.display_name!r}, {done.frames} frames at "
@@ -48,12 +48,6 @@ def run_export(path: Path, out_dir: Path, fps: float | None) -> int:
         print(f"posecast export: {path}: {err}", file=sys.stderr)
         return 1
     return 0
-
-
-def take_skeleton(take: AvatarTake) -> Skeleton:
-    """The take's calibrated skeleton, as the roster sent it."""
-    info = take.info
-    return Skeleton(info.joint_names, np.array(info.parents), np.array(info.rest_offsets))
 
 
 def file_names(takes: list[AvatarTake]) -> list[str]:

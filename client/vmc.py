@@ -46,11 +46,12 @@ from pythonosc.osc_message import OscMessage
 from pythonosc.osc_message_builder import OscMessageBuilder
 from pythonosc.udp_client import UDPClient
 
+from posecast.client.skeletons import skeleton_of
 from posecast.client.sources.base import now
 from posecast.client.spectator import ReceivedFrame, Spectator
 from posecast.protocol import AvatarBatch, AvatarInfo, AvatarRoster, ClockEstimator
 from posecast.solver.humanoid import HumanoidMap, humanoid_map, humanoid_pose
-from posecast.solver.skeleton import Skeleton, SkeletonError
+from posecast.solver.skeleton import SkeletonError
 
 log = logging.getLogger(__name__)
 
@@ -136,11 +137,6 @@ async def resolve(host: str, port: int) -> tuple[socket.AddressFamily, str]:
         raise VmcError(f"cannot resolve the VMC receiver host {host!r}: {reason}") from None
     family, _, _, _, address = found[0]
     return family, str(address[0])
-
-
-def skeleton_of(info: AvatarInfo) -> Skeleton:
-    return Skeleton(tuple(info.joint_names), np.array(info.parents, dtype=np.int32),
-                    np.asarray(info.rest_offsets, dtype=np.float64))
 
 
 def vmc_bundle(hmap: HumanoidMap, rotations: NDArray[np.float64], root: NDArray[np.float64],
@@ -255,19 +251,20 @@ async def run_vmc(url: str, room: str, avatar: str | None = None, host: str = "1
                   port: int = DEFAULT_PORT, seconds: float | None = None,
                   rate_hz: float = DEFAULT_RATE_HZ, token: str | None = None,
                   cafile: Path | None = None, stop: asyncio.Event | None = None,
-                  find_timeout: float = FIND_TIMEOUT_S) -> VmcStats:
+                  find_timeout: float = FIND_TIMEOUT_S,
+                  stats: VmcStats | None = None) -> VmcStats:
     """Spectate ``room`` at ``url`` and send one avatar to the VMC receiver at
     ``host``:``port`` until ``seconds`` pass or ``stop`` is set.
 
     ``avatar``: a display name (waited for up to ``find_timeout`` seconds, then VmcError
     naming the avatars present), or None for the room's first avatar (waited for as long
     as it runs). Raises VmcError for bad options or an unresolvable host, SessionError
-    when the server cannot be reached or goes away.
+    when the server cannot be reached or goes away. ``stats``: filled as it goes.
     """
     check_target(host, port)
     check_options(rate_hz, seconds, avatar)
     family, address = await resolve(host, port)
-    stats = VmcStats()
+    stats = stats if stats is not None else VmcStats()
     spectator = _VmcSpectator(url, room, SPECTATOR_NAME, token=token, cafile=cafile)
     halt = asyncio.Event()
     watching = asyncio.create_task(spectator.run(seconds, halt), name="posecast-vmc-watch")

@@ -83,6 +83,10 @@ BAD_ARGUMENTS: list[tuple[list[str], str]] = [
     (["export", "{file}", "--bvh", "{file}"], "--bvh"),
     (["export", "{file}", "--bvh", "out", "--fps", "-30"], "--fps"),
     (["play", "--server", URL, "--room", "r", "--record", "{file}"], "--record"),
+    (["vmc", "--server", URL, "--room", "r", "--to", "bad host:1"], "--to"),
+    (["vmc", "--server", URL, "--room", "r", "--to", "host:70000"], "--to"),
+    (["vmc", "--server", URL, "--room", "r", "--rate", "0"], "--rate"),
+    (["vmc", "--server", URL, "--room", "r", "--avatar", ""], "--avatar"),
 ]
 
 
@@ -111,7 +115,7 @@ def test_a_bad_value_is_one_line_naming_the_option(argv: list[str], option: str,
     captured = capsys.readouterr()
     command = " ".join(a for a in argv[:2] if not a.startswith("-") and a in (
         "play", "view", "eval", "serve", "demo", "bench", "render", "solver", "record",
-        "replay", "export"))
+        "replay", "export", "vmc"))
     _one_line(captured.err, command, option)
     assert captured.out == ""
 
@@ -309,11 +313,11 @@ def _closed_port() -> int:
         return int(s.getsockname()[1])
 
 
-@pytest.mark.parametrize("command", ["play", "view", "record"])
+@pytest.mark.parametrize("command", ["play", "view", "record", "vmc"])
 def test_an_unreachable_server_is_one_line(command: str, tmp_path: Path) -> None:
     url = f"ws://127.0.0.1:{_closed_port()}"
     extra = {"play": ["--source", CLIP], "record": ["--out", str(tmp_path / "r.pcrec")],
-             "view": ["--headless", "--out", str(tmp_path / "png")]}[command]
+             "view": ["--headless", "--out", str(tmp_path / "png")], "vmc": []}[command]
     code, out, err = Command(command, "--server", url, "--room", "r", *extra,
                              cwd=tmp_path).finish()
     assert code == 1 and "Traceback" not in err + out

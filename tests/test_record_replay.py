@@ -206,8 +206,8 @@ def test_an_exported_bvh_reads_back_as_the_recording_moved(tmp_path: Path) -> No
     joints lie within 0.5 mm of the recording's (forward kinematics of the recorded poses
     at the file's frame instants: rotations slerped, roots lerped between the two
     recorded frames around each)."""
-    from posecast.client.export_command import take_skeleton
     from posecast.client.recording import avatar_takes
+    from posecast.client.skeletons import skeleton_of
     from posecast.solver import rotations as R
     from posecast.solver.fk import forward_kinematics
     from posecast.solver.readers.bvh import read_bvh
@@ -235,7 +235,7 @@ def test_an_exported_bvh_reads_back_as_the_recording_moved(tmp_path: Path) -> No
         i = np.clip(np.searchsorted(times, t, side="right") - 1, 0, times.size - 2)
         u = np.clip((t - times[i]) / (times[i + 1] - times[i]), 0.0, 1.0)
         rot, roots = np.array(take.rotations), np.array(take.roots)
-        sk = take_skeleton(take)
+        sk = skeleton_of(take.info)
         _, recorded = forward_kinematics(
             sk, R.slerp(rot[i], rot[i + 1], u[:, None]), roots[i] + u[:, None] * (
                 roots[i + 1] - roots[i]))

@@ -24,6 +24,7 @@ from posecast.client.builtin import builtin_motion_path
 from posecast.client.connection import SessionError
 from posecast.client.demo import HEADSET_HZ
 from posecast.client.player import Player
+from posecast.client.skeletons import skeleton_of
 from posecast.client.sources.bvh_source import BvhSource
 from posecast.client.viewer.bench import Clip
 from posecast.client.vmc import (
@@ -31,7 +32,6 @@ from posecast.client.vmc import (
     check_target,
     parse_target,
     run_vmc,
-    skeleton_of,
     vmc_bundle,
 )
 from posecast.server.app import Session
