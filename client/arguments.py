@@ -171,7 +171,15 @@ def offset(text: str) -> tuple[float, float]:
 
 # --------------------------------------------------------------------------- session
 def server_url(text: str) -> str:
-    """A websocket URL: ws:// or wss://, a host, a port in 1..65535 if given."""
+    """A websocket URL: ws:// or wss://, a host, a port in 1..65535 if given; or several,
+    comma-separated (the processes of one service, tried in turn)."""
+    urls = [u.strip() for u in text.split(",")]
+    if len(urls) > 1:
+        if not all(urls):
+            raise argparse.ArgumentTypeError(f"has an empty URL in its list: {text!r}")
+        if len({urlsplit(u).scheme for u in urls}) > 1:
+            raise argparse.ArgumentTypeError(f"mixes ws:// and wss:// URLs: {text!r}")
+        return ",".join(server_url(u) for u in urls)
     parts = urlsplit(text)
     if parts.scheme not in ("ws", "wss"):
         raise argparse.ArgumentTypeError(

@@ -49,6 +49,15 @@ def _limit(text: str) -> str:
     return text
 
 
+def _redis_url(text: str) -> str:
+    from posecast.server.cluster import check_redis_url
+
+    try:
+        return check_redis_url(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+
+
 def _secret_file(text: str) -> Path:
     """A file holding a join-token secret (server.auth): readable, 32 bytes or more."""
     from posecast.server.auth import SecretError, read_secret_file
@@ -172,12 +181,23 @@ def _parser() -> argparse.ArgumentParser:
                     help="browser pages allowed to connect (their Origin header); a "
                          "client that sends no Origin, as play and view, is always let "
                          "in (default: every origin)")
+    sv.add_argument("--redis", type=_redis_url, default=None, metavar="redis://HOST:PORT",
+                    help="one of many server processes (on one machine or many) sharing "
+                         "rooms through this Redis: a room is solved by one of them, its "
+                         "spectators may join any (docs/architecture.md, \"Many "
+                         "processes\")")
+    sv.add_argument("--public-url", type=arg.server_url, default=None,
+                    metavar="ws://HOST:PORT",
+                    help="with --redis: where players reach this process, when other "
+                         "processes send them here (default: ws://HOST:PORT as it "
+                         "listens; behind a proxy, the proxy's URL for it)")
 
     pl = sub.add_parser("play", help="join a session as a tracked player",
                         description="Join a room as a player and stream your tracked poses. "
                         + STOPPED)
     pl.add_argument("--server", required=True, type=arg.server_url,
-                    help="the server, ws://HOST:PORT (wss:// for TLS)")
+                    help="the server, ws://HOST:PORT (wss:// for TLS); several of one "
+                         "service comma-separated, tried in turn (serve --redis)")
     pl.add_argument("--cafile", type=arg.ca_file, default=None,
                     help="PEM CA certificates to trust for a wss:// server (a private "
                          "CA); default: the system's trust store")
@@ -214,7 +234,8 @@ def _parser() -> argparse.ArgumentParser:
                         description="Watch a room: every avatar skinned, in a window or "
                         "(--headless) to PNG files. " + STOPPED)
     vw.add_argument("--server", required=True, type=arg.server_url,
-                    help="the server, ws://HOST:PORT (wss:// for TLS)")
+                    help="the server, ws://HOST:PORT (wss:// for TLS); several of one "
+                         "service comma-separated, tried in turn (serve --redis)")
     vw.add_argument("--cafile", type=arg.ca_file, default=None,
                     help="PEM CA certificates to trust for a wss:// server (a private "
                          "CA); default: the system's trust store")
@@ -262,7 +283,8 @@ def _parser() -> argparse.ArgumentParser:
                         "file (docs/recording-format.md) that posecast replay and export "
                         "read. " + STOPPED)
     rc.add_argument("--server", required=True, type=arg.server_url,
-                    help="the server, ws://HOST:PORT (wss:// for TLS)")
+                    help="the server, ws://HOST:PORT (wss:// for TLS); several of one "
+                         "service comma-separated, tried in turn (serve --redis)")
     rc.add_argument("--room", required=True, type=arg.room,
                     help="the room to record; " + ROOM_NAME_RULE)
     rc.add_argument("--out", required=True, type=arg.new_file, metavar="FILE",
@@ -285,7 +307,8 @@ def _parser() -> argparse.ArgumentParser:
                         "they did, for every spectator there. " + STOPPED)
     rp.add_argument("file", type=arg.existing_file, metavar="FILE", help="a .pcrec recording")
     rp.add_argument("--server", required=True, type=arg.server_url,
-                    help="the server, ws://HOST:PORT (wss:// for TLS)")
+                    help="the server, ws://HOST:PORT (wss:// for TLS); several of one "
+                         "service comma-separated, tried in turn (serve --redis)")
     rp.add_argument("--room", required=True, type=arg.room,
                     help="the room to play into; " + ROOM_NAME_RULE)
     rp.add_argument("--speed", type=arg.positive_float, default=1.0,
@@ -319,7 +342,8 @@ def _parser() -> argparse.ArgumentParser:
                         "moves: root, the Unity humanoid bones, OK and time, one bundle a "
                         "frame. " + STOPPED)
     vm.add_argument("--server", required=True, type=arg.server_url,
-                    help="the server, ws://HOST:PORT (wss:// for TLS)")
+                    help="the server, ws://HOST:PORT (wss:// for TLS); several of one "
+                         "service comma-separated, tried in turn (serve --redis)")
     vm.add_argument("--room", required=True, type=arg.room,
                     help="the room to take the avatar from; " + ROOM_NAME_RULE)
     vm.add_argument("--avatar", default=None, type=arg.display_name, metavar="NAME",
@@ -792,13 +816,23 @@ def _serve(args: argparse.Namespace) -> int:
     except ValueError as err:
         print(f"posecast serve: {err} (see posecast serve --help)", file=sys.stderr)
         return 2
+    if args.public_url is not None and args.redis is None:
+        return _usage("serve", "--public-url is for --redis: where other processes send "
+                               "this one's players")
     install_fast_loop()
+    cluster = None
+    if args.redis is not None:
+        from posecast.server.cluster import Cluster
+        cluster = Cluster(args.redis, args.public_url or "")
     session = Session(tokens=tokens, solver=args.solver, busy=args.busy_poll,
                       helper=None if args.helper else False,
-                      limits=limits)
+                      limits=limits, cluster=cluster)
+    from posecast.server.cluster import ClusterError
     try:
         asyncio.run(run_server(args.host, args.port, session, handle_signals=True,
                                tls=tls, origins=args.origins))
+    except ClusterError as err:
+        return _fail("serve", f"{err} (is redis-server running there?)")
     except OSError as err:
         return _fail("serve", f"cannot listen on {args.host}:{args.port}: {err.strerror}")
     print(json.dumps(session.metrics.as_json()))

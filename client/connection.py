@@ -53,6 +53,7 @@ from posecast.protocol import (
     Ping,
     Pong,
     ProtocolError,
+    Redirect,
     Welcome,
     decode,
     encode,
@@ -88,6 +89,15 @@ SYNC_MIN_SAMPLES = 3
 SYNC_BURST = 5
 SYNC_BURST_INTERVAL = 0.02
 SYNC_INTERVAL = 1.0
+
+
+MAX_REDIRECTS = 3  # a room's owner is one hop away; more means processes disagree
+
+
+def server_urls(url: str) -> list[str]:
+    """``--server`` may name several processes of one service, comma-separated: a
+    client tries them in turn (``serve --redis``)."""
+    return [u.strip() for u in url.split(",") if u.strip()]
 
 
 class SessionError(Exception):
@@ -186,12 +196,51 @@ class TimestampedConnection(ArrivalStamps, ClientConnection):
     clock = staticmethod(now)
 
 
+class RedirectedError(SessionError):
+    """The server sent us to the process that owns the room (``Redirect``)."""
+
+    def __init__(self, url: str, target: str) -> None:
+        super().__init__(url, f"sent to {target}, which serves the room")
+        self.target = target
+
+
 async def open_session(url: str, hello: Hello, *, timeout: float = OPEN_TIMEOUT,
                        max_size: int = MAX_MESSAGE_BYTES,
                        cafile: Path | None = None) -> Session:
     """Connect to ``url``, send ``hello``, wait for the Welcome; raise SessionError if not.
+    ``url``: one server, or several of one service comma-separated, tried in turn
+    while they cannot be reached; a server's Redirect to the room's owner is followed.
     A wss:// server's certificate must be vouched for by ``cafile`` (PEM CA
     certificates) if given, else by the system's trust store."""
+    urls = server_urls(url) or [url]
+    for i, one in enumerate(urls):
+        try:
+            return await _open_following(one, hello, timeout, max_size, cafile)
+        except SessionError as err:
+            if not err.retry or i == len(urls) - 1:
+                raise
+    raise AssertionError("unreachable")
+
+
+async def _open_following(url: str, hello: Hello, timeout: float, max_size: int,
+                          cafile: Path | None) -> Session:
+    """``_open_one``, following the Redirects of a service's processes (same scheme
+    only: a wss:// server cannot send us to plain ws://)."""
+    first = url
+    for _ in range(MAX_REDIRECTS + 1):
+        try:
+            return await _open_one(url, hello, timeout, max_size, cafile)
+        except RedirectedError as moved:
+            if urlsplit(moved.target).scheme != urlsplit(first).scheme:
+                raise SessionError(url, f"the server sent us to {moved.target}: not "
+                                   f"{urlsplit(first).scheme}:// as asked") from None
+            url = moved.target
+    raise SessionError(first, f"sent on more than {MAX_REDIRECTS} times (do the servers "
+                       f"share one Redis?)", retry=True)
+
+
+async def _open_one(url: str, hello: Hello, timeout: float, max_size: int,
+                    cafile: Path | None) -> Session:
     try:
         tls = client_tls_context(cafile) if urlsplit(url).scheme == "wss" else None
     except CAFileError as exc:
@@ -232,6 +281,8 @@ async def _handshake(url: str, ws: ClientConnection, hello: Hello, timeout: floa
     if isinstance(reply, Error):
         raise SessionError(url, f"the server refused to join: {reply.code}: {reply.message}",
                            code=reply.code)
+    if isinstance(reply, Redirect):
+        raise RedirectedError(url, reply.url)
     if not isinstance(reply, Welcome):
         raise SessionError(url, f"expected a welcome from the server, got {reply.type!r}")
     return reply
@@ -437,10 +488,16 @@ class Reconnect:
     count: int = 0  # sessions opened again
 
     async def again(self, lost: SessionError, hello: Hello, *, cafile: Path | None = None,
-                    stop: asyncio.Event | None = None) -> Session | None:
+                    stop: asyncio.Event | None = None, url: str | None = None
+                    ) -> Session | None:
         """A new session after ``lost`` (the same ``hello``; a player's carries its
-        resume secret), or None if ``stop`` was set meanwhile."""
-        url = lost.url
+        resume secret), or None if ``stop`` was set meanwhile. ``url``: the servers to
+        try (``--server``, maybe several): the one lost is tried last."""
+        urls = server_urls(url or lost.url) or [lost.url]
+        if lost.url in urls and len(urls) > 1:
+            urls.remove(lost.url)
+            urls.append(lost.url)
+        url = ",".join(urls)
         self.say(f"connection lost ({lost.reason}); reconnecting")
         t0, delay = now(), self.first_s
         while True:

@@ -220,7 +220,7 @@ class Player:
                 resume = self.hello.model_copy(update={"resume": session.welcome.resume})
                 try:
                     again = await self.reconnect.again(lost, resume, cafile=self.cafile,
-                                                       stop=stop)
+                                                       stop=stop, url=self.url)
                 except SessionError:
                     self.stats.ended_by = "server"
                     raise

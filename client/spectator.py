@@ -110,7 +110,7 @@ class Spectator:
                 if self.reconnect is None or not lost.retry:
                     raise
                 again = await self.reconnect.again(lost, self.hello, cafile=self.cafile,
-                                                   stop=stop)
+                                                   stop=stop, url=self.url)
                 if again is None:
                     return self.stats
                 session = again

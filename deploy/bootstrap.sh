@@ -53,6 +53,10 @@ if ! command -v npm >/dev/null 2>&1; then
     install_missing "Node.js and npm, to build the browser spectator" nodejs npm
 fi
 # `bootstrap.sh test`: what the test suite needs besides, Chromium for the browser tests
+# and a real redis-server for serve --redis
 if [ "${1:-}" = "test" ] && ! command -v chromium >/dev/null 2>&1; then
     install_missing "Chromium, for the browser spectator's tests" chromium
+fi
+if [ "${1:-}" = "test" ] && ! command -v redis-server >/dev/null 2>&1; then
+    install_missing "redis-server, for the tests of serve --redis" redis-server
 fi

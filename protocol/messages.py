@@ -1,8 +1,8 @@
 """Every message of a posecast session, as frozen pydantic models.
 
 Client -> server: Hello, TrackerFrame, Calibrate, Ping, Leave, ViewerReport.
-Server -> client: Welcome, AvatarRoster (of AvatarInfo), AvatarBatch (of AvatarFrame),
-Pong, Error.
+Server -> client: Welcome (or Redirect), AvatarRoster (of AvatarInfo), AvatarBatch (of
+AvatarFrame), Pong, Error.
 
 Each message has a ``type`` literal that names it on the wire. AvatarInfo is a record
 inside a roster; solved poses always travel in an AvatarBatch (of one when alone; see
@@ -380,17 +380,33 @@ class Leave(Model):
     reason: Text = ""
 
 
+def _websocket_url(url: str) -> str:
+    if not url.startswith(("ws://", "wss://")):
+        raise ValueError(f"must be a ws:// or wss:// URL, got {url[:40]!r}")
+    return url
+
+
+class Redirect(Model):
+    """Server -> client, in place of a Welcome: the room is served by another process of
+    the service (``posecast serve --redis``); join there with the same Hello."""
+
+    type: Literal["redirect"] = "redirect"
+    url: Annotated[str, Strict(), Field(min_length=6, max_length=512),
+                   AfterValidator(_websocket_url)]
+
+
 ClientMessage = Hello | TrackerFrame | Calibrate | Ping | Leave | ViewerReport
-ServerMessage = Welcome | AvatarRoster | AvatarBatch | Pong | Error
+ServerMessage = Welcome | AvatarRoster | AvatarBatch | Pong | Error | Redirect
 Message = ClientMessage | ServerMessage
 
 CLIENT_MESSAGES: tuple[type[Model], ...] = (Hello, TrackerFrame, Calibrate, Ping, Leave,
                                              ViewerReport)
-SERVER_MESSAGES: tuple[type[Model], ...] = (Welcome, AvatarRoster, AvatarBatch, Pong, Error)
+SERVER_MESSAGES: tuple[type[Model], ...] = (Welcome, AvatarRoster, AvatarBatch, Pong, Error,
+                                             Redirect)
 MESSAGE_TYPES: dict[str, type[Model]] = {
     cls.model_fields["type"].default: cls for cls in CLIENT_MESSAGES + SERVER_MESSAGES}
 
 __all__ = ["PROTOCOL_VERSION", "SUPPORTED_VERSIONS", "AvatarBatch", "AvatarFrame",
            "AvatarInfo", "AvatarRoster", "Calibrate", "ClientMessage", "Error", "Hello",
-           "Leave", "Message", "Ping", "Pong", "ServerMessage", "TrackerFrame", "ViewerReport",
-           "Welcome"]
+           "Leave", "Message", "Ping", "Pong", "Redirect", "ServerMessage", "TrackerFrame",
+           "ViewerReport", "Welcome"]

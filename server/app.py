@@ -20,7 +20,8 @@ import secrets
 import signal
 import socket
 import ssl
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Coroutine, Sequence
+from typing import Any
 
 import numba
 import numpy as np
@@ -42,6 +43,7 @@ from posecast.protocol import (
     Ping,
     Pong,
     ProtocolError,
+    Redirect,
     TrackerFrame,
     ViewerReport,
     Welcome,
@@ -56,6 +58,7 @@ from posecast.server.auth import JoinTokens, TokenError, is_loopback
 from posecast.server.avatars import AvatarSolver
 from posecast.server.busy import BusyPoll
 from posecast.server.clock import now
+from posecast.server.cluster import Cluster
 from posecast.server.eviction import Watchdog, close_now
 from posecast.server.helper import spare_cores
 from posecast.server.http_routes import session_routes
@@ -69,8 +72,16 @@ from posecast.server.metrics import Metrics
 from posecast.server.outbox import Outbox
 from posecast.server.prometheus import session_registry
 from posecast.server.rejection_log import LineBudget, RejectionLog
+from posecast.server.relay import BATCH, ROSTER, open_envelope, relayed_batch, relayed_roster
 from posecast.server.replay import ReplayedAvatars
-from posecast.server.room import Avatar, Delivery, Room, Spectator, send_deliveries
+from posecast.server.room import (
+    Avatar,
+    Delivery,
+    RelayedBatch,
+    Room,
+    Spectator,
+    send_deliveries,
+)
 from posecast.server.tls import allowed_origins, tcp_under_tls
 from posecast.solver.readers.gltf import load_makehuman
 from posecast.solver.rig import Rig, build_rig
@@ -92,8 +103,10 @@ class Session:
     def __init__(self, rig: Rig | None = None, solver: str = "analytic",
                  reconnect_grace: float = RECONNECT_GRACE, busy: bool = False,
                  helper: bool | None = None, limits: ServerLimits | None = None,
-                 tokens: JoinTokens | None = None) -> None:
+                 tokens: JoinTokens | None = None, cluster: Cluster | None = None) -> None:
         """``limits``: every cap and rate of the server (``server.limits``).
+        ``cluster``: one of many processes sharing rooms through Redis (``server.cluster``;
+        ``run_server`` starts it).
         ``tokens``: admit only Hellos with a join token signed with its secret
         (``server.auth``); None: anyone joins any room.
         ``busy``: poll without sleeping and keep the frame path warm between bursts
@@ -135,13 +148,188 @@ class Session:
         # solve on the event loop's own thread: waking a worker thread costs more in a VM
         # than it saves on a batch of tens of avatars; scale out with processes instead
         numba.set_num_threads(1)
+        self.cluster = cluster
+        self._claiming: dict[str, asyncio.Lock] = {}  # one claim of a room at a time
+        if cluster is not None:
+            cluster.on_message = self._relayed
+            cluster.lost_room = self._hand_over
+            cluster.rejoined = self._rejoined
 
-    def room(self, name: str) -> Room:
+    async def start_cluster(self) -> None:
+        """Join the other processes (``ClusterError`` if Redis cannot be used): ids from
+        this process's block, unique across the service."""
+        if self.cluster is not None:
+            first = await self.cluster.start()
+            self._ids = itertools.count(first + 1)
+
+    def room(self, name: str, relayed: bool = False) -> Room:
         if name not in self.rooms:  # rooms are created on first join
             self.rooms[name] = Room(name, self.avatars, self.metrics,
                                     bursts=self.busy.bursts if self.busy else None,
-                                    limits=self.limits)
+                                    limits=self.limits, cluster=self.cluster,
+                                    relayed=relayed)
         return self.rooms[name]
+
+    def _drop_room(self, room: Room) -> None:
+        """An empty room leaves this process: its key in Redis, or its channel, goes."""
+        if self.rooms.get(room.name) is room:
+            del self.rooms[room.name]
+            if self.cluster is not None:
+                if room.relayed:
+                    self._later(self.cluster.unwatch(room.name))
+                else:
+                    self.cluster.release(room.name)
+
+    def _later(self, aw: Coroutine[Any, Any, None]) -> None:
+        task = asyncio.get_running_loop().create_task(aw)
+        self._closing.add(task)  # held until done: the loop keeps only weak references
+        task.add_done_callback(self._closing.discard)
+
+    # ------------------------------------------------------------------ the cluster
+    async def _own(self, name: str) -> str | None:
+        """A player or replay joins ``name``: own the room (taking it over, with its
+        avatars, from a dead owner), or the URL of the live process that owns it."""
+        assert self.cluster is not None
+        lock = self._claiming.setdefault(name, asyncio.Lock())
+        async with lock:
+            room = self.rooms.get(name)
+            if room is not None and not room.relayed and name in self.cluster.owned:
+                return None
+            url = await self.cluster.claim(name)
+            if url is not None:
+                return url
+            room = self.room(name)
+            if room.relayed:  # its spectators stay; the mirror makes way for the avatars
+                room.relayed = False
+                await self.cluster.unwatch(name)
+            await self._restore(room)
+            if not lock.locked() or len(self._claiming) > 4 * len(self.rooms) + 16:
+                self._claiming = {k: v for k, v in self._claiming.items() if v.locked()}
+            return None
+
+    async def _restore(self, room: Room) -> None:
+        """The room's avatars as Redis has them, calibrated from their T-poses as by the
+        process that had them; their players resume within the reconnect grace."""
+        assert self.cluster is not None
+        mirror = {a for a, avatar in room.avatars.items()
+                  if self._owners.get(a) is None and not avatar.connected}
+        records = await self.cluster.records(room.name)
+        restored = 0
+        for record in records:
+            if record.avatar_id in room.avatars and record.avatar_id not in mirror:
+                continue  # a live avatar of this process: it knows better
+            mirror.discard(record.avatar_id)
+            room.avatars.pop(record.avatar_id, None)
+            if record.resume is None:  # a replay's: gone with its connection
+                room.remove_avatar(record.avatar_id)
+                continue
+            avatar = Avatar(record.avatar_id, record.display_name, record.resume,
+                            connected=False)
+            room.avatars[avatar.avatar_id] = avatar
+            if record.roles is not None and record.poses is not None:
+                try:
+                    room.calibrate(avatar, record.roles, record.poses)
+                except ValueError as err:
+                    log.warning("room %r: avatar %d not calibrated again: %s", room.name,
+                                avatar.avatar_id, err)
+            self._forget_later(room, avatar)
+            restored += 1
+        for avatar_id in mirror:  # on the spectators' screens, and no longer anywhere
+            room.remove_avatar(avatar_id)
+        if restored:
+            log.info("room %r: %d avatars back from Redis, calibrated", room.name, restored)
+
+    async def _watch(self, name: str) -> None:
+        """A spectator joins ``name``: where another process owns it, this process
+        receives its batches and rosters through Redis and keeps a mirror of its avatars."""
+        assert self.cluster is not None
+        if name in self.rooms:
+            return
+        room = self.room(name, relayed=True)
+        await self.cluster.watch(name)
+        await self._mirror(room)
+
+    async def _mirror(self, room: Room) -> None:
+        assert self.cluster is not None
+        for record in await self.cluster.records(room.name):
+            if record.info is not None and room.relayed:
+                room.avatars[record.avatar_id] = Avatar(
+                    record.avatar_id, record.display_name, "", info=record.info,
+                    connected=False)
+
+    def _relayed(self, name: str, data: bytes) -> None:
+        """What the owner of a room published, for this process's spectators of it."""
+        room = self.rooms.get(name)
+        if room is None or not room.relayed:
+            return
+        try:
+            envelope = open_envelope(data)
+            if envelope.sender == self.cluster.process_id:  # type: ignore[union-attr]
+                return
+            t = now()
+            self.metrics.relay_latency.add(t - envelope.t_published)
+            if envelope.kind == BATCH:
+                payload, batch = relayed_batch(envelope)
+                known = [a in room.avatars for a in batch.avatar_ids.tolist()]
+                if not all(known):  # before its roster (a snapshot being read): skipped
+                    self.metrics.frames_unsendable += known.count(False)
+                    if not any(known):
+                        return
+                    keep = [i for i, k in enumerate(known) if k]
+                    batch = AvatarBatch.from_frames([batch.frame(i) for i in keep],
+                                                    t_sent=batch.t_sent)
+                    payload = encode(batch)
+                self.metrics.frames_relayed += batch.size
+                room.deliver(RelayedBatch(payload, batch))
+            elif envelope.kind == ROSTER:
+                roster = relayed_roster(envelope)
+                for info in roster.avatars:
+                    avatar = room.avatars.get(info.avatar_id)
+                    if avatar is None:
+                        avatar = room.avatars[info.avatar_id] = Avatar(
+                            info.avatar_id, info.display_name, "", connected=False)
+                    avatar.info = info
+                for avatar_id in roster.removed:
+                    room.avatars.pop(avatar_id, None)
+                    for s in room.spectators.values():
+                        s.outbox.forget(avatar_id)
+                room.send_roster(envelope.payload)
+        except (ValueError, ProtocolError) as err:
+            self.metrics.rejected["relay"] += 1
+            if self.log_budget.take(now()):
+                log.warning("room %r: a message from Redis skipped: %s", name, err)
+
+    def _hand_over(self, name: str, url: str) -> None:
+        """Another process owns the room now (Redis was lost and another took it): its
+        players go there, its spectators stay and receive the owner's frames."""
+        room = self.rooms.get(name)
+        if room is None:
+            return
+        room.relayed = True  # first: nothing below goes to Redis
+        room.discard_pending()
+        for avatar_id in list(room.avatars):
+            ws = self._owners.get(avatar_id)
+            if ws is not None:
+                self._evict(ws, "room_moved", 1012, f"the room moved to {url[:60]}")
+            room.remove_avatar(avatar_id)
+
+        async def watch() -> None:
+            assert self.cluster is not None
+            await self.cluster.watch(name)
+            await self._mirror(room)
+        self._later(watch())
+
+    async def _rejoined(self) -> None:
+        """Redis is back: the owned rooms' records again (made while it was lost too),
+        the relayed rooms' mirrors again."""
+        assert self.cluster is not None
+        for room in list(self.rooms.values()):
+            if room.relayed:
+                await self._mirror(room)
+                continue
+            for avatar in room.avatars.values():
+                room.keep(avatar, resumable=avatar.avatar_id in self._owners
+                          or avatar.tpose is not None)
 
     @property
     def open_connections(self) -> int:
@@ -194,6 +382,14 @@ class Session:
         if hello.room not in self.rooms and len(self.rooms) >= self.limits.rooms:
             await self._refuse(ws, "rooms", "no room for a new room")
             return
+        if self.cluster is not None:  # where the room is owned
+            if hello.role == "spectator":
+                await self._watch(hello.room)
+            else:
+                url = await self._own(hello.room)
+                if url is not None:
+                    await self._redirect(ws, url)
+                    return
         if hello.role == "player" and self._players_full(hello):
             await self._refuse(ws, "players_per_room", "the room is full")
             return
@@ -216,7 +412,14 @@ class Session:
             if rejections is not None:
                 rejections.summary()
         if room.empty:
-            self.rooms.pop(room.name, None)
+            self._drop_room(room)
+
+    async def _redirect(self, ws: ServerConnection, url: str) -> None:
+        """A player of a room another process owns: sent there, to stream without a hop
+        (``serve --redis``)."""
+        with contextlib.suppress(ConnectionClosed):
+            await ws.send(encode(Redirect(url=url)))
+            await ws.close(1000, "redirected")
 
     def _players_full(self, hello: Hello) -> bool:
         """A new player would pass the room's cap (a reconnect keeps its place)."""
@@ -421,7 +624,7 @@ class Session:
             if not avatar.connected and room.avatars.get(avatar.avatar_id) is avatar:
                 room.remove_avatar(avatar.avatar_id)
                 if room.empty:
-                    self.rooms.pop(room.name, None)
+                    self._drop_room(room)
         if at_once or self.reconnect_grace <= 0:
             forget()
         else:
@@ -659,6 +862,7 @@ async def run_server(host: str, port: int, session: Session | None = None,
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, stop.set)
     server: Server
+    await session.start_cluster()  # ClusterError (one line) when Redis cannot be used
     async with serve(session.handle, host, port, compression=None,
                      create_connection=TimestampedServerConnection,
                      process_request=session_routes(session),  # GET /healthz, /metrics
@@ -666,6 +870,12 @@ async def run_server(host: str, port: int, session: Session | None = None,
                      max_queue=session.limits.max_queue, ssl=tls,
                      origins=allowed_origins(origins)) as server:
         bound = next(iter(server.sockets)).getsockname()[1]
+        if session.cluster is not None and not session.cluster.public_url:
+            # where the others send this process's players: as it listens (loopback
+            # and one-machine set-ups; behind a proxy, serve --public-url)
+            shown = "127.0.0.1" if host in ("", "0.0.0.0", "::") else host
+            session.cluster.public_url = (f"{'ws' if tls is None else 'wss'}://"
+                                          f"{shown}:{bound}")
         log.info("posecast server on %s://%s:%d", "ws" if tls is None else "wss", host, bound)
         log.info("health and metrics on the same port: %s://%s:%d/healthz and /metrics",
                  "http" if tls is None else "https", host, bound)
@@ -689,6 +899,8 @@ async def run_server(host: str, port: int, session: Session | None = None,
     for room in session.rooms.values():  # a burst opened while the connections closed
         room.discard_pending()
     session.avatars.close()
+    if session.cluster is not None:  # its rooms' keys go: others may take them at once
+        await session.cluster.close()
     return session
 
 

@@ -91,3 +91,21 @@ class ViewerLatency(StageHistograms):
         np.subtract(t_received, t_capture, out=values[0])
         np.subtract(t_presented, t_capture, out=values[1])
         self.observe(values)
+
+
+class RelayLatency(StageHistograms):
+    """``serve --redis``: from the owner publishing a batch or roster to this process
+    receiving it from Redis (``relay``), both on this process's clock. The newest
+    MAX_SAMPLES values are kept too, for the demo's percentiles."""
+
+    MAX_SAMPLES = 200_000
+
+    def __init__(self) -> None:
+        super().__init__(("relay",))
+        self.samples: list[float] = []
+
+    def add(self, seconds: float) -> None:
+        self.observe(np.array([[seconds]]))
+        if len(self.samples) >= self.MAX_SAMPLES:
+            del self.samples[:self.MAX_SAMPLES // 2]
+        self.samples.append(seconds)

@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass, field
 
-from posecast.server.latency import ServerLatency, ViewerLatency
+from posecast.server.latency import RelayLatency, ServerLatency, ViewerLatency
 
 
 @dataclass
@@ -25,6 +25,9 @@ class Metrics:
     # avatar-frames a replay connection published (server.replay): not solved here, but
     # offered to the spectators like solved ones
     frames_replayed: int = 0
+    # ``serve --redis``: avatar-frames another process solved, received through Redis
+    # and offered to this process's spectators like solved ones
+    frames_relayed: int = 0
     batches: int = 0
     # every solved avatar-frame offered to a spectator is exactly one of these two:
     # handed to its socket, or never sent (a newer one of the avatar replaced it in the
@@ -40,6 +43,7 @@ class Metrics:
     # the spectators' own stages, from their reports (ViewerReport); read by /metrics
     viewer_reports: int = 0  # reports taken (a refused one counts in ``rejected``)
     viewer_latency: ViewerLatency = field(default_factory=ViewerLatency)
+    relay_latency: RelayLatency = field(default_factory=RelayLatency)
 
     def as_json(self) -> dict[str, object]:
         return {"connections": self.connections, "frames_received": self.frames_received,
@@ -48,7 +52,8 @@ class Metrics:
                 "frames_rejected": self.frames_rejected,
                 "frames_solved": self.frames_solved,
                 "frames_unsendable": self.frames_unsendable,
-                "frames_replayed": self.frames_replayed, "batches": self.batches,
+                "frames_replayed": self.frames_replayed,
+                "frames_relayed": self.frames_relayed, "batches": self.batches,
                 "frames_delivered": self.frames_delivered,
                 "frames_dropped": self.frames_dropped,
                 "viewer_reports": self.viewer_reports, "rejected": dict(self.rejected),

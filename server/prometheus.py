@@ -43,6 +43,8 @@ FRAME_COUNTERS: tuple[tuple[str, str], ...] = (
                           "the row."),
     ("frames_replayed", "Avatar-frames a replay connection published to the room's "
                         "spectators (posecast replay)."),
+    ("frames_relayed", "Avatar-frames another process solved, received through Redis "
+                       "for this process's spectators (serve --redis)."),
     ("frames_delivered", "Avatar-frames handed to a spectator's socket, summed over "
                          "spectators."),
     ("frames_dropped", "Avatar-frames never sent to a spectator: a newer one replaced "
@@ -97,8 +99,10 @@ class SessionCollector(Collector):
             "capture_to_server (captured to its bytes' arrival), solve (arrival to "
             "solved), server (arrival to handed to the sockets), for every frame solved; "
             "capture_to_spectator (to its arrival at a viewer) and capture_to_presented "
-            "(to a viewer's screen), for the frames viewers report.", labels=["stage"])
-        for histograms in (m.latency, m.viewer_latency):
+            "(to a viewer's screen), for the frames viewers report; relay (another process "
+            "published a batch or roster to this one receiving it through Redis).",
+            labels=["stage"])
+        for histograms in (m.latency, m.viewer_latency, m.relay_latency):
             for stage in histograms.stages:
                 buckets, total = histograms.cumulative(stage)
                 latency.add_metric([stage], buckets, total)

@@ -54,6 +54,7 @@ class ReplayedAvatars:
             avatar.info = AvatarInfo(avatar_id=room_id, display_name=avatar.display_name,
                                      joint_names=info.joint_names, parents=info.parents,
                                      rest_offsets=info.rest_offsets)
+            self.room.keep(avatar, resumable=False)  # for spectators on other processes
             infos.append(avatar.info)
         if infos:
             self.room.broadcast_roster(AvatarRoster(avatars=tuple(infos)))

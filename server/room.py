@@ -19,6 +19,7 @@ import contextlib
 import hmac
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from websockets.asyncio.server import ServerConnection, broadcast
@@ -42,8 +43,12 @@ from posecast.server.clock import now
 from posecast.server.limits import ServerLimits
 from posecast.server.metrics import Metrics
 from posecast.server.outbox import Outbox
+from posecast.server.relay import BATCH, ROSTER, AvatarRecord
 from posecast.solver.calibration import Calibration
 from posecast.solver.plausible import check_t_pose
+
+if TYPE_CHECKING:
+    from posecast.server.cluster import Cluster
 
 
 class SharedBatch:
@@ -60,6 +65,10 @@ class SharedBatch:
         self.t_sent: float | None = None  # when first encoded: its bytes went out
         self._batch: AvatarBatch | None = None
 
+    @property
+    def avatar_ids(self) -> list[int]:
+        return self.args[0]
+
     def encoded(self) -> bytes:
         if self._encoded is None:  # t_sent: now, as the bytes go to the sockets
             self.t_sent = now()
@@ -70,6 +79,18 @@ class SharedBatch:
         if self._batch is None:
             self._batch = AvatarBatch.from_arrays(*self.args, t_sent=self.args[-1])
         return self._batch.frame(index)
+
+
+class RelayedBatch(SharedBatch):
+    """A batch another process solved, as this one hands it on (``serve --redis``): its
+    bytes go to every spectator that takes it whole; one behind gets what it lacks."""
+
+    def __init__(self, data: bytes, batch: AvatarBatch) -> None:
+        self.args = (batch.avatar_ids.tolist(),)  # type: ignore[assignment]
+        self.size = batch.size
+        self._encoded = data
+        self.t_sent = batch.t_sent
+        self._batch = batch
 
 
 Delivery = tuple[SharedBatch, int]  # a batch and the index of one avatar in it
@@ -92,6 +113,8 @@ class Avatar:
     connection: ArrivalStamps | None = None
     cadence: Cadence = field(default_factory=Cadence)  # when its next frame is due
     last_seq: int = -1  # of its player's last frame taken on this connection
+    # the T-pose it was calibrated from (roles, poses (D, 7)): what Redis keeps of it
+    tpose: tuple[tuple[str, ...], np.ndarray] | None = None
 
 
 # a spectator whose socket holds more unsent bytes than this is slow: its frames go
@@ -135,6 +158,12 @@ class Room:
     _arrived: bool = False  # a frame came in during the current pass of the event loop
     _burst_start: float = 0.0
     _awaited: set[int] = field(default_factory=set)  # players due within the open burst
+    # with ``serve --redis``: the link to the other processes (server.cluster). An owned
+    # room publishes its batches and rosters and keeps its avatars' records in Redis; a
+    # relayed one is owned by another process: its avatars are a mirror of the owner's
+    # rosters, and its spectators get the owner's batches as they come through Redis
+    cluster: Cluster | None = None
+    relayed: bool = False
 
     # ------------------------------------------------------------------ players
     def find_by_resume(self, resume: str | None) -> Avatar | None:
@@ -166,8 +195,20 @@ class Room:
                                  rest_offsets=cal.offsets)
         if self._pending.pop(avatar.avatar_id, None) is not None:  # of the old T-pose
             self.metrics.frames_discarded += 1
+        avatar.tpose = (frame_roles, np.array(poses))
+        self.keep(avatar)
         self.broadcast_roster(AvatarRoster(avatars=(avatar.info,)))
         return cal
+
+    def keep(self, avatar: Avatar, resumable: bool = True) -> None:
+        """The avatar's record into Redis (an owned room's, with ``serve --redis``): with
+        its T-pose, the process that takes the room over calibrates it as here. Not
+        ``resumable``: a replay's avatar, which leaves with its connection."""
+        if self.cluster is not None and not self.relayed:
+            roles, poses = avatar.tpose if avatar.tpose is not None else (None, None)
+            self.cluster.save(self.name, AvatarRecord(
+                avatar.avatar_id, avatar.display_name,
+                avatar.resume if resumable else None, avatar.info, roles, poses))
 
     def is_calibrated(self, avatar_id: int) -> bool:
         return avatar_id in self.solver.calibrations
@@ -239,6 +280,8 @@ class Room:
         self.solve_pending()
 
     def remove_avatar(self, avatar_id: int) -> None:
+        if self.cluster is not None and not self.relayed:
+            self.cluster.forget(self.name, avatar_id)
         self.avatars.pop(avatar_id, None)
         self.solver.remove(avatar_id)
         if self._pending.pop(avatar_id, None) is not None:
@@ -302,6 +345,8 @@ class Room:
     def deliver(self, shared: SharedBatch) -> None:
         """Every spectator gets the batch: written to the socket at once when it is idle
         and keeping up (one encoding, no task switch), else through its outbox."""
+        if self.cluster is not None and not self.relayed:  # once, to every other process
+            self.cluster.publish(self.name, BATCH, shared.encoded())
         t = asyncio.get_running_loop().time()
         direct = [s for s in self.spectators.values() if s.direct(t)]
         if direct:
@@ -312,7 +357,7 @@ class Room:
                 s.outbox.sent_directly(n, t)
             self.metrics.frames_delivered += n * len(direct)
         if len(direct) < len(self.spectators):
-            deliveries = {a: (shared, i) for i, a in enumerate(shared.args[0])}
+            deliveries = {a: (shared, i) for i, a in enumerate(shared.avatar_ids)}
             chosen = {id(s) for s in direct}
             for s in self.spectators.values():
                 if id(s) not in chosen:
@@ -344,12 +389,19 @@ class Room:
 
     def broadcast_roster(self, roster: AvatarRoster) -> None:
         data = encode(roster)
+        if self.cluster is not None and not self.relayed:
+            self.cluster.publish(self.name, ROSTER, data)
+        self.send_roster(data)
+
+    def send_roster(self, data: bytes) -> None:
+        """An encoded roster to every spectator of this process."""
         for s in self.spectators.values():
             asyncio.get_running_loop().create_task(_quiet(s.send_bytes(data)))
 
     @property
     def empty(self) -> bool:
-        return not self.avatars and not self.spectators
+        """Nothing left of the room here (a relayed room's avatars are the owner's)."""
+        return not self.spectators and (self.relayed or not self.avatars)
 
     @property
     def settled(self) -> bool:

@@ -1,0 +1,397 @@
+"""Many server processes as one service, through Redis (``posecast serve --redis URL``).
+
+As Colyseus does with its Redis presence, processes share state only through Redis:
+- a room is owned by one process, the one whose key ``posecast:room:NAME:owner`` holds
+  its id, its public URL and when it last renewed the key (every RENEW_S; the key
+  expires after OWNER_TTL_S). A player who joins elsewhere is sent to the owner (a
+  Redirect: the frames then take no extra hop). An owner that stopped renewing for
+  STALE_S is dead (SIGKILL, a lost machine): the next process a player of the room
+  reaches takes the room over at once instead of waiting for the key to expire;
+- the owner publishes each batch and roster once on the room's channel; the other
+  processes with spectators of the room subscribe and hand the bytes on (``server.relay``);
+- every avatar's record (resume secret, name, T-pose) is in the hash
+  ``posecast:room:NAME:avatars``, so the process that takes a room over brings its
+  avatars back calibrated;
+- avatar ids come in blocks (``posecast:ids``), so ids stay unique across processes.
+
+Redis lost while running: every room carries on in the process that has it, served to
+its own clients; the link logs it once, retries every RETRY_S, and when Redis is back
+claims its rooms again and rewrites their records (``Cluster.rejoined``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import secrets
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from typing import Any
+
+import redis.asyncio as aioredis
+from redis.exceptions import RedisError
+
+from posecast.server.relay import AvatarRecord, relay_envelope
+
+log = logging.getLogger("posecast.cluster")
+
+OWNER_TTL_S = 3.0  # an owner key outlives a dead owner this long at most
+RENEW_S = 0.25  # how often an owner renews its keys
+STALE_S = 0.8  # an owner silent this long is dead: its rooms may be taken over
+RETRY_S = 0.5  # while Redis is lost: how often to try it again
+COMMAND_TIMEOUT_S = 1.0  # a command that takes longer means Redis is lost
+ID_BLOCK = 1 << 20  # avatar and connection ids per process start (below 2**53 for JS)
+PREFIX = "posecast:"
+
+# renew an owner key only if it still names this process (compare-and-set, in Redis)
+_RENEW = """
+local v = redis.call('GET', KEYS[1])
+if v and cjson.decode(v)['id'] == ARGV[1] then
+  redis.call('SET', KEYS[1], ARGV[2], 'PX', ARGV[3]) return 1 end
+return 0"""
+# take a stale owner key over: only if it is still the value that was read
+_STEAL = """
+if redis.call('GET', KEYS[1]) == ARGV[1] then
+  redis.call('SET', KEYS[1], ARGV[2], 'PX', ARGV[3]) return 1 end
+return 0"""
+_RELEASE = """
+local v = redis.call('GET', KEYS[1])
+if v and cjson.decode(v)['id'] == ARGV[1] then redis.call('DEL', KEYS[1]) return 1 end
+return 0"""
+
+
+class ClusterError(RuntimeError):
+    """Redis cannot be used at start: one line for the user."""
+
+
+def owner_key(room: str) -> str:
+    return f"{PREFIX}room:{room}:owner"
+
+
+def avatars_key(room: str) -> str:
+    return f"{PREFIX}room:{room}:avatars"
+
+
+def room_channel(room: str) -> str:
+    return f"{PREFIX}room:{room}:live"
+
+
+@dataclass
+class ClusterStats:
+    published: int = 0  # envelopes handed to Redis
+    relayed: int = 0  # envelopes received from other processes' rooms
+    unpublished: int = 0  # dropped while Redis was lost
+    takeovers: int = 0  # rooms taken over from a dead owner
+    redirects: int = 0  # players sent to the owner
+    lost: int = 0  # times Redis was lost
+
+
+class Cluster:
+    """This process's link to the others. ``on_message(room, data)``: an envelope
+    published by another process on the channel of a room this process watches;
+    ``rejoined()``: Redis is back after a loss (the session claims its rooms again)."""
+
+    def __init__(self, url: str, public_url: str) -> None:
+        self.url = url
+        self.public_url = public_url
+        self.process_id = secrets.token_hex(8)
+        self.redis: aioredis.Redis = aioredis.from_url(
+            url, socket_timeout=COMMAND_TIMEOUT_S, socket_connect_timeout=COMMAND_TIMEOUT_S)
+        self.up = False
+        self.stats = ClusterStats()
+        self.owned: set[str] = set()  # rooms whose key names this process
+        self.watched: set[str] = set()  # rooms whose channel this process subscribes to
+        self.on_message: Callable[[str, bytes], None] = lambda room, data: None
+        self.rejoined: Callable[[], Awaitable[None]] | None = None
+        self.lost_room: Callable[[str, str], None] = lambda room, url: None
+        self._queue: list[tuple[Any, ...]] = []  # commands for the writer, in order
+        self._wake = asyncio.Event()
+        self._tasks: list[asyncio.Task[None]] = []
+        self._pubsub: Any = None
+        self._closed = False
+        self._renew = self.redis.register_script(_RENEW)
+        self._steal = self.redis.register_script(_STEAL)
+        self._release = self.redis.register_script(_RELEASE)
+
+    # ------------------------------------------------------------------ life
+    async def start(self) -> int:
+        """Connect, or ClusterError naming the URL and why; the first id of this
+        process's block."""
+        try:
+            await self.redis.ping()
+            first = int(await self.redis.incrby(f"{PREFIX}ids", ID_BLOCK)) - ID_BLOCK
+        except (RedisError, OSError) as exc:
+            await self.redis.aclose()
+            raise ClusterError(f"cannot use Redis at {self.url}: {_why(exc)}") from None
+        self.up = True
+        await self._subscribe_all()
+        loop = asyncio.get_running_loop()
+        self._tasks = [loop.create_task(self._writer()), loop.create_task(self._renewer())]
+        log.info("one of a cluster through Redis at %s, as %s (%s)", self.url,
+                 self.process_id, self.public_url)
+        return first
+
+    async def close(self) -> None:
+        """Give up this process's rooms (others may take them at once) and disconnect."""
+        self._closed = True
+        for task in self._tasks:
+            task.cancel()
+        for task in self._tasks:
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await task
+        if self.up:
+            with contextlib.suppress(RedisError, OSError):
+                await self._flush()
+                for room in list(self.owned):
+                    await self._release(keys=[owner_key(room)], args=[self.process_id])
+        if self._pubsub is not None:
+            with contextlib.suppress(RedisError, OSError):
+                await self._pubsub.aclose()
+        with contextlib.suppress(RedisError, OSError):
+            await self.redis.aclose()
+
+    def _lost(self, exc: BaseException) -> None:
+        if self.up and not self._closed:
+            self.up = False
+            self.stats.lost += 1
+            log.warning("Redis at %s lost (%s): every room carries on in its process, "
+                        "served to its own clients; retrying every %g s", self.url,
+                        _why(exc), RETRY_S)
+            self.stats.unpublished += sum(1 for c in self._queue if c[0] == "publish")
+            self._queue.clear()
+
+    # ------------------------------------------------------------------ ownership
+    def _owner_value(self) -> str:
+        return json.dumps({"id": self.process_id, "url": self.public_url, "at": time.time()})
+
+    async def claim(self, room: str) -> str | None:
+        """Own ``room``, or the URL of the live process that owns it. Without Redis the
+        room is served here (and claimed again when Redis is back)."""
+        if not self.up:
+            self.owned.add(room)
+            return None
+        key = owner_key(room)
+        try:
+            for _ in range(3):  # a key that expired between two reads: try again
+                value = self._owner_value()
+                if await self.redis.set(key, value, nx=True, px=int(OWNER_TTL_S * 1000)):
+                    self.owned.add(room)
+                    return None
+                old = await self.redis.get(key)
+                if old is None:
+                    continue
+                owner = _parse_owner(old)
+                if owner is None or owner["id"] == self.process_id:
+                    await self.redis.set(key, value, px=int(OWNER_TTL_S * 1000))
+                    self.owned.add(room)
+                    return None
+                silent = time.time() - float(owner["at"])
+                if silent < STALE_S:
+                    self.stats.redirects += 1
+                    return str(owner["url"])
+                if await self._steal(keys=[key], args=[old, value, int(OWNER_TTL_S * 1000)]):
+                    self.stats.takeovers += 1
+                    log.warning("room %r taken over from %s (%s), silent for %.1f s",
+                                room, owner["id"], owner["url"], silent)
+                    self.owned.add(room)
+                    return None
+        except (RedisError, OSError) as exc:
+            self._lost(exc)
+        self.owned.add(room)
+        return None
+
+    def release(self, room: str) -> None:
+        """The room is gone from this process: its key goes (queued, in order)."""
+        if room in self.owned:
+            self.owned.discard(room)
+            self._push(("release", room))
+
+    async def _renewer(self) -> None:
+        """Renew this process's keys; try Redis again while it is lost."""
+        while True:
+            await asyncio.sleep(RENEW_S if self.up else RETRY_S)
+            if not self.up:
+                await self._try_again()
+                continue
+            rooms = list(self.owned)
+            if not rooms:
+                continue
+            try:
+                value = self._owner_value()
+                async with self.redis.pipeline(transaction=False) as pipe:
+                    for room in rooms:
+                        await self._renew(keys=[owner_key(room)],
+                                          args=[self.process_id, value,
+                                                int(OWNER_TTL_S * 1000)], client=pipe)
+                    renewed = await pipe.execute()
+            except (RedisError, OSError) as exc:
+                self._lost(exc)
+                continue
+            for room, ok in zip(rooms, renewed, strict=True):
+                if not ok and room in self.owned:  # taken while this process was silent
+                    await self._reclaim(room)
+
+    async def _reclaim(self, room: str) -> None:
+        """A room whose key this process lost: claim it again, or hand it to the owner."""
+        self.owned.discard(room)
+        url = await self.claim(room)
+        if url is not None:
+            log.warning("room %r is owned by %s now: its players are sent there", room, url)
+            self.lost_room(room, url)
+
+    async def _try_again(self) -> None:
+        try:
+            await self.redis.ping()
+        except (RedisError, OSError):
+            return
+        self.up = True
+        log.warning("Redis at %s is back: claiming this process's rooms again", self.url)
+        try:
+            await self._subscribe_all()
+        except (RedisError, OSError) as exc:
+            self._lost(exc)
+            return
+        for room in list(self.owned):
+            await self._reclaim(room)
+        if self.rejoined is not None:
+            await self.rejoined()
+
+    # ------------------------------------------------------------------ avatars
+    def save(self, room: str, record: AvatarRecord) -> None:
+        self._push(("hset", avatars_key(room), str(record.avatar_id), record.pack()))
+
+    def forget(self, room: str, avatar_id: int) -> None:
+        self._push(("hdel", avatars_key(room), str(avatar_id)))
+
+    async def records(self, room: str) -> list[AvatarRecord]:
+        """The room's avatars as Redis has them (unreadable ones skipped, logged)."""
+        if not self.up:
+            return []
+        try:
+            raw = await self.redis.hgetall(avatars_key(room))
+        except (RedisError, OSError) as exc:
+            self._lost(exc)
+            return []
+        records = []
+        for field, data in raw.items():
+            try:
+                records.append(AvatarRecord.unpack(data))
+            except ValueError as err:
+                log.warning("room %r: avatar %r in Redis skipped: %s", room, field, err)
+        return sorted(records, key=lambda r: r.avatar_id)
+
+    async def flush(self) -> None:
+        """Wait until every queued command reached Redis (or Redis is lost)."""
+        with contextlib.suppress(RedisError, OSError):
+            await self._flush()
+
+    # ------------------------------------------------------------------ fan-out
+    def publish(self, room: str, kind: str, payload: bytes) -> None:
+        """A batch or roster of an owned room to the processes watching it; never waits
+        (one writer task sends the queue in order, pipelined)."""
+        if not self.up:
+            self.stats.unpublished += 1
+            return
+        self._push(("publish", room_channel(room), relay_envelope(kind, self.process_id,
+                                                                   payload)))
+
+    def _push(self, command: tuple[Any, ...]) -> None:
+        if self.up:
+            self._queue.append(command)
+            self._wake.set()
+
+    async def _writer(self) -> None:
+        while True:
+            await self._wake.wait()
+            self._wake.clear()
+            try:
+                await self._flush()
+            except (RedisError, OSError) as exc:
+                self._lost(exc)
+
+    async def _flush(self) -> None:
+        while self._queue:
+            commands, self._queue = self._queue, []
+            async with self.redis.pipeline(transaction=False) as pipe:
+                for command in commands:
+                    kind = command[0]
+                    if kind == "publish":
+                        pipe.publish(command[1], command[2])
+                    elif kind == "hset":
+                        pipe.hset(command[1], command[2], command[3])
+                    elif kind == "hdel":
+                        pipe.hdel(command[1], command[2])
+                    else:  # release
+                        await self._release(keys=[owner_key(command[1])],
+                                            args=[self.process_id], client=pipe)
+                await pipe.execute()
+            self.stats.published += sum(1 for c in commands if c[0] == "publish")
+
+    async def watch(self, room: str) -> None:
+        """Receive what the owner of ``room`` publishes (``on_message``)."""
+        self.watched.add(room)
+        if self.up and self._pubsub is not None:
+            try:
+                await self._pubsub.subscribe(room_channel(room))
+            except (RedisError, OSError) as exc:
+                self._lost(exc)
+
+    async def unwatch(self, room: str) -> None:
+        self.watched.discard(room)
+        if self.up and self._pubsub is not None:
+            try:
+                await self._pubsub.unsubscribe(room_channel(room))
+            except (RedisError, OSError) as exc:
+                self._lost(exc)
+
+    async def _subscribe_all(self) -> None:
+        """A new subscriber connection: this process's own channel (so that it always
+        listens) and every watched room's; a listener task reads it."""
+        if self._pubsub is not None:
+            with contextlib.suppress(RedisError, OSError):
+                await self._pubsub.aclose()
+        pubsub = self.redis.pubsub(ignore_subscribe_messages=True)
+        await pubsub.subscribe(f"{PREFIX}process:{self.process_id}",
+                               *(room_channel(r) for r in self.watched))
+        self._pubsub = pubsub
+        task = asyncio.get_running_loop().create_task(self._listen(pubsub))
+        self._tasks.append(task)
+
+    async def _listen(self, pubsub: Any) -> None:
+        prefix, suffix = f"{PREFIX}room:", ":live"
+        try:
+            while True:
+                message = await pubsub.get_message(timeout=None)
+                if message is None or message.get("type") != "message":
+                    continue
+                channel = message["channel"].decode()
+                if channel.startswith(prefix) and channel.endswith(suffix):
+                    self.stats.relayed += 1
+                    self.on_message(channel[len(prefix):-len(suffix)], message["data"])
+        except (RedisError, OSError) as exc:
+            if pubsub is self._pubsub:
+                self._lost(exc)
+
+
+def _parse_owner(value: bytes | str) -> dict[str, Any] | None:
+    try:
+        owner = json.loads(value)
+        return owner if isinstance(owner, dict) and {"id", "url", "at"} <= owner.keys() \
+            else None
+    except ValueError:
+        return None
+
+
+def _why(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return text[0] if text else type(exc).__name__
+
+
+def check_redis_url(text: str) -> str:
+    """redis://HOST[:PORT][/DB] or rediss:// or unix://; ValueError otherwise."""
+    if not text.startswith(("redis://", "rediss://", "unix://")):
+        raise ValueError(f"must be a Redis URL such as redis://127.0.0.1:6379, got {text!r}")
+    return text

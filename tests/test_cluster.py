@@ -1,0 +1,242 @@
+"""Server processes sharing rooms through Redis (issue 19): a real redis-server on
+127.0.0.1, real servers and real clients. Players on one process and spectators on
+another see the same frames; a player sent to the wrong process is redirected to the
+owner; the owner killed, its players come back on another process, still calibrated."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import sys
+import time
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+
+from posecast.client.builtin import builtin_motion_path
+from posecast.client.connection import Reconnect
+from posecast.client.player import Player
+from posecast.client.redis_process import RedisMissingError, RedisProcess, free_port
+from posecast.client.sources import open_source
+from posecast.client.spectator import Spectator
+from posecast.protocol import AvatarBatch, ClockEstimator
+from posecast.server.app import Session, run_server
+from posecast.server.cluster import Cluster
+
+TIMEOUT = 60.0
+QUICK = {"first_s": 0.05, "max_s": 0.2}
+
+
+@pytest.fixture
+def redis_url() -> Iterator[str]:
+    try:
+        with RedisProcess() as server:
+            yield server.url
+    except RedisMissingError as err:
+        pytest.skip(str(err))
+
+
+class Process:
+    """A server with ``--redis`` in this event loop, on a port of its own."""
+
+    def __init__(self, redis_url: str, grace: float = 30.0) -> None:
+        self.port = free_port()
+        self.url = f"ws://127.0.0.1:{self.port}"
+        self.cluster = Cluster(redis_url, self.url)
+        self.session = Session(reconnect_grace=grace, cluster=self.cluster)
+        self._stop = asyncio.Event()
+        self._task: asyncio.Task[Session] | None = None
+
+    async def __aenter__(self) -> Process:
+        ready: asyncio.Future[int] = asyncio.get_running_loop().create_future()
+        self._task = asyncio.create_task(run_server("127.0.0.1", self.port, self.session,
+                                                    self._stop, ready.set_result))
+        await asyncio.wait_for(ready, TIMEOUT)
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        self._stop.set()
+        assert self._task is not None
+        await asyncio.wait_for(self._task, TIMEOUT)
+
+
+class Keeping(Spectator):
+    """A spectator that keeps every (avatar, seq) -> rotations it receives."""
+
+    def __init__(self, url: str, room: str, name: str) -> None:
+        super().__init__(url, room, name)
+        self.frames: dict[tuple[int, int], np.ndarray] = {}
+        self.arrived: dict[int, float] = {}  # each avatar's last frame, time.monotonic()
+
+    def on_batch(self, batch: AvatarBatch, t_local: float, clock: ClockEstimator) -> None:
+        super().on_batch(batch, t_local, clock)
+        for frame in batch.frames:
+            self.frames[(frame.avatar_id, frame.seq)] = frame.rotations.copy()
+            self.arrived[frame.avatar_id] = time.monotonic()
+
+
+async def until(condition: object, what: str) -> None:
+    t_end = time.monotonic() + TIMEOUT
+    while not condition():  # type: ignore[operator]
+        assert time.monotonic() < t_end, f"timed out waiting for {what}"
+        await asyncio.sleep(0.02)
+
+
+@contextlib.asynccontextmanager
+async def running(*clients: Player | Spectator):  # type: ignore[no-untyped-def]
+    stop = asyncio.Event()
+    tasks = [asyncio.create_task(c.run(stop=stop)) for c in clients]
+    try:
+        yield tasks
+    finally:
+        stop.set()
+        await asyncio.wait_for(asyncio.gather(*tasks, return_exceptions=True), TIMEOUT)
+
+
+def test_a_spectator_on_another_process_receives_every_frame_the_owner_solved(
+        redis_url: str) -> None:
+    async def main() -> None:
+        async with Process(redis_url) as a, Process(redis_url) as b:
+            here = Keeping(a.url, "show", "on a")
+            far = Keeping(b.url, "show", "on b")
+            sources = [open_source(f"bvh:{builtin_motion_path()}", loop=True)
+                       for _ in range(2)]
+            players = [Player(a.url, "show", f"p{i}", s) for i, s in enumerate(sources)]
+            async with running(here, far):
+                await until(lambda: "show" in b.session.rooms, "the far spectator in")
+                await until(lambda: "show" in a.session.rooms, "the near spectator in")
+                async with running(*players):
+                    await until(lambda: len(far.frames) > 200, "frames through Redis")
+                    ids = {p.stats.avatar_id for p in players}
+                    assert set(far.roster) == set(here.roster) == ids
+                await until(lambda: not far.roster, "the players' leaving, through Redis")
+                await until(lambda: b.session.metrics.frames_relayed
+                            == a.session.metrics.frames_solved, "the last relayed")
+                await asyncio.sleep(0.2)
+            for s in sources:
+                s.close()
+            solved = a.session.metrics.frames_solved
+            assert b.session.metrics.frames_relayed == solved  # every one, through Redis
+            assert b.session.metrics.frames_solved == 0  # nothing solved twice
+            # what the far spectator missed is counted (latest wins), never lost silently
+            assert len(far.frames) + b.session.metrics.frames_dropped == solved
+            assert len(far.frames) >= 0.95 * solved
+            shared = set(far.frames) & set(here.frames)
+            assert len(shared) >= 0.9 * solved
+            for key in shared:  # the same bytes: the same rotations exactly
+                np.testing.assert_array_equal(far.frames[key], here.frames[key])
+            relay = b.session.metrics.relay_latency
+            assert relay.count("relay") > 0
+
+    asyncio.run(main())
+
+
+def test_a_player_joining_another_process_is_sent_to_the_owner(redis_url: str) -> None:
+    async def main() -> None:
+        async with Process(redis_url) as a, Process(redis_url) as b:
+            first_source = open_source(f"bvh:{builtin_motion_path()}", loop=True)
+            second_source = open_source(f"bvh:{builtin_motion_path()}", loop=True)
+            first = Player(a.url, "match", "first", first_source)
+            second = Player(b.url, "match", "second", second_source)  # redirected to A
+            async with running(first):
+                await until(lambda: a.session.metrics.frames_solved > 10, "A owns the room")
+                async with running(second):
+                    await until(lambda: second.stats.avatar_id is not None
+                                and second.stats.frames_sent > 20, "the second streaming")
+                    room = a.session.rooms["match"]
+                    assert {first.stats.avatar_id, second.stats.avatar_id} <= set(room.avatars)
+                    assert "match" not in b.session.rooms  # no spectator there
+                    assert b.cluster.stats.redirects == 1
+            first_source.close()
+            second_source.close()
+
+    asyncio.run(main())
+
+
+# ---------------------------------------------------------------------- failover
+def test_the_owner_killed_its_players_stream_through_another_process_calibrated(
+        redis_url: str) -> None:
+    """4 players on process A (a real `posecast serve --redis`), a spectator on B; A gets
+    SIGKILL. The players (given both URLs, with the default backoff) come back through
+    B with their avatars, calibrated, within 3 s; the spectator never leaves B."""
+    port = free_port()
+    a_url = f"ws://127.0.0.1:{port}"
+    said: list[str] = []
+
+    async def main() -> None:
+        serve = await asyncio.create_subprocess_exec(
+            sys.executable, "-m", "posecast.client.cli", "serve", "--port", str(port),
+            "--redis", redis_url, "--log-level", "warning",
+            stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE)
+        try:
+            await until_listening(port, serve)
+            async with Process(redis_url) as b:
+                viewer = Keeping(b.url, "stage", "on b")
+                sources = [open_source(f"bvh:{builtin_motion_path()}", loop=True)
+                           for _ in range(4)]
+                urls = f"{a_url},{b.url}"
+                players = [Player(urls, "stage", f"p{i}", s, reconnect=Reconnect(
+                    say=said.append)) for i, s in enumerate(sources)]
+                async with running(viewer):
+                    await until(lambda: "stage" in b.session.rooms, "the spectator in")
+                    async with running(*players):
+                        await until(lambda: all(p.stats.avatar_id for p in players),
+                                    "the players in")
+                        ids = {p.stats.avatar_id for p in players}
+                        await until(lambda: set(viewer.roster) == ids
+                                    and len(viewer.frames) > 100, "frames from A")
+                        assert b.session.metrics.frames_solved == 0
+                        serve.kill()  # SIGKILL: no goodbye, its keys stay until they expire
+                        await serve.wait()
+                        t_killed = time.monotonic()
+                        solved_by_b: dict[int, float] = {}
+
+                        def back() -> bool:
+                            """Each avatar's first frame solved by B: A is dead, so
+                            what the viewer gets once B owns the room is B's."""
+                            room = b.session.rooms.get("stage")
+                            if room is None or room.relayed:
+                                return False
+                            if not solved_by_b:
+                                solved_by_b[0] = time.monotonic()  # B owns it from here
+                            for avatar_id, t in viewer.arrived.items():
+                                if avatar_id not in solved_by_b and t > solved_by_b[0]:
+                                    solved_by_b[avatar_id] = t - t_killed
+                            return set(solved_by_b) == ids | {0}
+                        await until(back, "every player streaming through B")
+                        back_in = max(t for a, t in solved_by_b.items() if a)
+                        print(f"all 4 players streaming through B {back_in:.2f} s after "
+                              f"the kill")
+                        assert back_in <= 3.0
+                        await asyncio.sleep(0.3)
+                        assert set(viewer.roster) == ids  # the same avatars
+                        assert {p.stats.avatar_id for p in players} == ids
+                        assert all(p.stats.calibrations_sent == 1 for p in players)
+                        assert all(p.stats.reconnects == 1 for p in players)
+                        assert viewer.stats.reconnects == 0  # it stayed on B throughout
+                        assert b.cluster.stats.takeovers == 1
+                for s in sources:
+                    s.close()
+        finally:
+            if serve.returncode is None:
+                serve.kill()
+                await serve.wait()
+
+    asyncio.run(main())
+    assert sum("avatar resumed, still calibrated" in line for line in said) == 4, said
+
+
+async def until_listening(port: int, proc: asyncio.subprocess.Process) -> None:
+    t_end = time.monotonic() + TIMEOUT
+    while True:
+        try:
+            _, writer = await asyncio.open_connection("127.0.0.1", port)
+            writer.close()
+            return
+        except OSError:
+            if proc.returncode is not None:
+                err = await proc.stderr.read() if proc.stderr else b""
+                raise AssertionError(f"serve exited: {err.decode()[-500:]}") from None
+            assert time.monotonic() < t_end, "serve did not listen"
+            await asyncio.sleep(0.05)
