@@ -855,6 +855,7 @@ async def run_server(host: str, port: int, session: Session | None = None,
     listening (port 0 picks a free one). ``tls``: serve wss:// (``server.tls``);
     ``origins``: the browser origins allowed (requests without an Origin header too)."""
     session = session or Session()
+    await session.start_cluster()  # ClusterError (one line) when Redis cannot be used
     _say_access(session, host)
     stop = stop or asyncio.Event()
     loop = asyncio.get_running_loop()
@@ -862,7 +863,6 @@ async def run_server(host: str, port: int, session: Session | None = None,
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, stop.set)
     server: Server
-    await session.start_cluster()  # ClusterError (one line) when Redis cannot be used
     async with serve(session.handle, host, port, compression=None,
                      create_connection=TimestampedServerConnection,
                      process_request=session_routes(session),  # GET /healthz, /metrics

@@ -7,12 +7,15 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import subprocess
 import sys
 import time
 from collections.abc import Iterator
 
+import msgpack
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
 from posecast.client.builtin import builtin_motion_path
 from posecast.client.connection import Reconnect
@@ -20,9 +23,17 @@ from posecast.client.player import Player
 from posecast.client.redis_process import RedisMissingError, RedisProcess, free_port
 from posecast.client.sources import open_source
 from posecast.client.spectator import Spectator
-from posecast.protocol import AvatarBatch, ClockEstimator
+from posecast.protocol import AvatarBatch, ClockEstimator, Redirect, decode, encode
 from posecast.server.app import Session, run_server
-from posecast.server.cluster import Cluster
+from posecast.server.cluster import Cluster, owner_key
+from posecast.server.relay import (
+    BATCH,
+    AvatarRecord,
+    open_envelope,
+    relay_envelope,
+    relayed_batch,
+    wall_minus_clock,
+)
 
 TIMEOUT = 60.0
 QUICK = {"first_s": 0.05, "max_s": 0.2}
@@ -240,3 +251,124 @@ async def until_listening(port: int, proc: asyncio.subprocess.Process) -> None:
                 raise AssertionError(f"serve exited: {err.decode()[-500:]}") from None
             assert time.monotonic() < t_end, "serve did not listen"
             await asyncio.sleep(0.05)
+
+
+# ---------------------------------------------------------------------- Redis lost
+def test_redis_lost_while_running_keeps_each_room_local_and_rejoins_when_back() -> None:
+    """Redis killed under a room owned by A with a spectator on A and one on B: A's
+    player and spectator carry on (logged once); a new room still opens on B. Redis back
+    (empty, as a restarted in-memory one is): A claims its room again and writes its
+    avatar's calibration again, and B's spectator gets the frames again."""
+    try:
+        redis_server = RedisProcess().start()
+    except RedisMissingError as err:
+        pytest.skip(str(err))
+    port = redis_server.port
+    back = RedisProcess(port)
+
+    async def main() -> None:
+        async with Process(redis_server.url) as a, Process(redis_server.url) as b:
+            near = Keeping(a.url, "live", "on a")
+            far = Keeping(b.url, "live", "on b")
+            source = open_source(f"bvh:{builtin_motion_path()}", loop=True)
+            other_source = open_source(f"bvh:{builtin_motion_path()}", loop=True)
+            player = Player(a.url, "live", "pat", source)
+            async with running(near, far):
+                await until(lambda: "live" in b.session.rooms and "live" in a.session.rooms,
+                            "the spectators in")
+                async with running(player):
+                    await until(lambda: len(far.frames) > 30, "frames through Redis")
+                    redis_server.stop()
+                    await until(lambda: not a.cluster.up, "A to notice")
+                    solved = a.session.metrics.frames_solved
+                    seen = len(near.frames)
+                    await until(lambda: len(near.frames) > seen + 90, "A's room going on")
+                    assert a.session.metrics.frames_solved > solved + 90
+                    # a room opened while Redis is gone is served where it is joined
+                    lone = Player(b.url, "alone", "lee", other_source)
+                    async with running(lone):
+                        await until(lambda: b.session.metrics.frames_solved > 20,
+                                    "a new room on B")
+                    back.start()  # Redis back, empty
+                    await until(lambda: a.cluster.up and b.cluster.up, "both to rejoin")
+                    await until(lambda: far.arrived.get(player.stats.avatar_id or 0, 0)
+                                > time.monotonic() - 0.1, "frames through Redis again")
+                    check = Cluster(redis_server.url, "ws://127.0.0.1:1")
+                    check.up = True  # a reader only: not started, not one of the service
+                    owner = await check.redis.get(owner_key("live"))
+                    assert owner is not None and a.cluster.process_id in owner.decode()
+                    records = await check.records("live")
+                    assert [r.avatar_id for r in records] == [player.stats.avatar_id]
+                    assert records[0].poses is not None  # its T-pose: calibrated again
+                    await check.redis.aclose()
+            assert player.stats.reconnects == 0 and near.stats.reconnects == 0
+            assert a.cluster.stats.lost == 1
+            source.close()
+            other_source.close()
+
+    try:
+        asyncio.run(main())
+    finally:
+        back.stop()
+        redis_server.stop()
+
+
+# ---------------------------------------------------------------------- edges
+def test_serve_with_redis_unreachable_says_so_in_one_line() -> None:
+    url = f"redis://127.0.0.1:{free_port()}"  # nothing listens there
+    done = subprocess.run([sys.executable, "-m", "posecast.client.cli", "serve", "--port",
+                           "0", "--redis", url], capture_output=True, text=True,
+                          timeout=TIMEOUT)
+    assert done.returncode == 1
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1, lines
+    assert lines[0].startswith(f"posecast serve: cannot use Redis at {url}: ")
+    assert "Connection refused" in lines[0] and "redis-server" in lines[0]
+
+
+def test_an_envelope_from_another_machine_is_moved_onto_this_clock() -> None:
+    """Another machine's clock is another origin: the receiver moves every time of a
+    batch by the difference of the two wall-minus-clock offsets, and keeps the poses."""
+    rotations = np.tile([0.0, 0.0, 0.0, 1.0], (2, 3, 1))
+    rotations[1, 2] = [0.0, np.sin(0.3), 0.0, np.cos(0.3)]
+    batch = AvatarBatch.from_arrays([7, 9], [1, 2], np.zeros((2, 3)), rotations,
+                                    [10.0, 10.5], [10.1, 10.6], 10.7, 10.8)
+    payload = encode(batch)
+    far = msgpack.packb((BATCH, "other", 11.0, wall_minus_clock() - 1000.0, payload),
+                        use_bin_type=True)
+    envelope = open_envelope(far)
+    assert envelope.shift == pytest.approx(-1000.0, abs=1e-3)
+    data, moved = relayed_batch(envelope)
+    np.testing.assert_allclose(moved.t_capture, batch.t_capture - 1000.0, atol=1e-3)
+    assert moved.t_sent == pytest.approx(10.8 - 1000.0, abs=1e-3)
+    sent = decode(payload)  # as the owner's spectators get it (quantized)
+    assert isinstance(sent, AvatarBatch)
+    np.testing.assert_allclose(moved.rotations, sent.rotations, atol=1e-6)
+    assert decode(data) == moved
+    near = relay_envelope(BATCH, "same", payload)  # this machine: the bytes go on as they are
+    assert relayed_batch(open_envelope(near))[0] is not None
+    assert open_envelope(near).shift == 0.0 and relayed_batch(open_envelope(near))[0] == payload
+    for junk in (b"", b"\x93\x01\x02\x03", msgpack.packb(("x", "s", 1.0, 0.0, b""))):
+        with pytest.raises(ValueError, match="not a relay envelope"):
+            open_envelope(junk)
+
+
+def test_an_avatar_record_comes_back_as_it_was_kept() -> None:
+    poses = np.arange(21, dtype=np.float64).reshape(3, 7)
+    record = AvatarRecord(12, "ana", "secret", None, ("head", "left_hand", "right_hand"),
+                          poses)
+    back = AvatarRecord.unpack(record.pack())
+    assert (back.avatar_id, back.display_name, back.resume, back.roles) == (
+        12, "ana", "secret", ("head", "left_hand", "right_hand"))
+    assert back.poses is not None
+    np.testing.assert_array_equal(back.poses, poses)
+    for junk in (b"\xc1", msgpack.packb({"id": 1}), "text"):
+        with pytest.raises(ValueError, match="not an avatar record"):
+            AvatarRecord.unpack(junk)
+
+
+def test_a_redirect_names_a_websocket_url() -> None:
+    assert Redirect(url="wss://host/s2").url == "wss://host/s2"
+    for bad in ("http://host/", "javascript:alert(1)", ""):
+        with pytest.raises(ValidationError):
+            Redirect(url=bad)
