@@ -402,6 +402,11 @@ def _parser() -> argparse.ArgumentParser:
                          "(default: loopback)")
     dm.add_argument("--limit", action="append", default=[], type=_limit, metavar="NAME=VALUE",
                     help="override one of the server's limits, as serve --limit does")
+    dm.add_argument("--servers", type=arg.positive_int, default=1, metavar="N",
+                    help="run N server processes sharing the room through a Redis the demo "
+                         "starts (serve --redis; needs redis-server): the players on the "
+                         "first, the spectators spread over all; the latency table gains "
+                         "the relay hop")
     dm.add_argument("--json", action="store_true", help="print one JSON document")
 
     lv = sub.add_parser("latency-video", help="end-to-end latency from a video of the "
@@ -951,6 +956,7 @@ async def _calibrate_and_stream(player: Player, delay: float, seconds: float | N
 def _demo(args: argparse.Namespace) -> int:
     from posecast.client.demo import DemoError, run_demo
     from posecast.client.latency import format_latency_table
+    from posecast.client.redis_process import RedisMissingError
 
     try:
         limits = ServerLimits().with_text(args.limit)
@@ -962,7 +968,10 @@ def _demo(args: argparse.Namespace) -> int:
                           render=args.render, render_mode=args.render_mode,
                           busy=None if args.busy_poll else False,
                           helper=None if args.helper else False, network=args.network,
-                          limits=limits)
+                          limits=limits, servers=args.servers)
+    except RedisMissingError as err:
+        print(f"posecast demo: --servers {args.servers}: {err}", file=sys.stderr)
+        return 1
     except DemoError as err:  # e.g. a link whose stalls make the server refuse frames
         print(f"posecast demo: {err}", file=sys.stderr)
         return 1

@@ -11,9 +11,11 @@ With a network spec, every connection goes through the emulator (``network``), b
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import itertools
 import multiprocessing as mp
 import os
+import threading
 from collections.abc import Callable, Coroutine, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -53,6 +55,9 @@ HEADSET_HZ = 90.0  # an HTC Vive's rate: players send what their headset samples
 # players whose display error is measured: a few say it as well as many, and the work
 # after the session (and the samples sent back) stays small however many play
 MEASURED_PLAYERS = 4
+# demo --servers: the owner stops first; the others this much later, once its last
+# batches have crossed Redis (a hop takes well under a millisecond)
+RELAY_SETTLE_S = 0.5
 
 
 class DemoError(RuntimeError):
@@ -84,6 +89,8 @@ class DemoResult:
     # spectator 1's presented pose vs the player's true one, per viewer mode (mm)
     display_error: DisplayError = field(default_factory=DisplayError)
     proxy: dict[str, object] = field(default_factory=dict)  # the emulator's counts
+    servers: int = 1  # server processes sharing the room through Redis
+    frames_relayed: int = 0  # avatar-frames the other processes got through Redis
 
     def as_json(self) -> dict[str, object]:
         return {"players": self.players, "spectators": self.spectators,
@@ -100,7 +107,8 @@ class DemoResult:
                 "display_error_mm": self.display_error.as_json(),
                 "playout_delay_ms": self.display_error.delay_json(),
                 # the emulator's chunks, bytes, stalls and median delay per direction
-                "network_counts": self.proxy}
+                "network_counts": self.proxy, "servers": self.servers,
+                "frames_relayed": self.frames_relayed}
 
     def format_display_error(self) -> str:
         """What a spectator sees, per viewer mode: p50/p95 of the display error."""
@@ -127,8 +135,13 @@ class DemoResult:
                 ("delivered", self.frames_delivered, "received, summed over the spectators"),
                 ("dropped", self.frames_dropped, "not sent to a spectator: a newer frame of "
                  "the avatar replaced it in its outbox (latest wins)")]
+        if self.servers > 1:
+            rows.insert(2, ("relayed", self.frames_relayed, f"solved frames the other "
+                            f"{self.servers - 1} processes got through Redis, for their "
+                            f"spectators"))
         width = max(len(str(n)) for _, n, _ in rows)
-        lines = [f"{self.players} players, {self.spectators} spectators, "
+        where = f" over {self.servers} server processes" if self.servers > 1 else ""
+        lines = [f"{self.players} players, {self.spectators} spectators{where}, "
                  f"{self.seconds:g} s; avatar-frames:"]
         lines += [f"  {name:<10} {n:>{width}}  {what}" for name, n, what in rows]
         gap = self.frames_sent - (self.frames_solved + self.frames_superseded
@@ -172,21 +185,27 @@ def pin_to_cores(role: str, cores: Cores) -> None:
 
 
 def _serve_process(pipe: Connection, solver: str, cores: Cores, busy: bool,
-                   helper: bool | None, limits: ServerLimits | None = None) -> None:
-    """The server process: report the port, serve until told to stop, report metrics."""
+                   helper: bool | None, limits: ServerLimits | None = None,
+                   redis_url: str | None = None, role: str = "server") -> None:
+    """The server process: report the port, serve until told to stop, report metrics
+    (and, one of many through Redis, the relay hops it measured)."""
     from posecast.server.app import Session, install_fast_loop, run_server
+    from posecast.server.cluster import Cluster
 
-    pin_to_cores("server", cores)
+    pin_to_cores(role, cores)
     install_fast_loop()
 
     async def main() -> dict[str, object]:
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
         loop.add_reader(pipe.fileno(), stop.set)  # any message from the parent: stop
-        session = Session(solver=solver, busy=busy, helper=helper, limits=limits)
+        cluster = Cluster(redis_url, "") if redis_url is not None else None
+        session = Session(solver=solver, busy=busy, helper=helper, limits=limits,
+                          cluster=cluster)
         await run_server("127.0.0.1", 0, session, stop, ready=pipe.send,
                          drain_timeout=STOP_TIMEOUT / 2)
-        return session.metrics.as_json()
+        return {**session.metrics.as_json(),
+                "relay_samples": session.metrics.relay_latency.samples}
 
     pipe.send(asyncio.run(main()))
 
@@ -196,11 +215,15 @@ class EmbeddedServer:
 
     def __init__(self, solver: str = "analytic", cores: Cores = (),
                  busy: bool = False, helper: bool | None = None,
-                 limits: ServerLimits | None = None) -> None:
+                 limits: ServerLimits | None = None, redis_url: str | None = None,
+                 role: str = "server") -> None:
+        """``redis_url``: one of many processes sharing rooms (``serve --redis``);
+        ``role``: where it runs (``pin_to_cores``)."""
         ctx = mp.get_context("spawn")  # a fresh interpreter: no inherited event loop
         self._pipe, child = ctx.Pipe()
         self._process = ctx.Process(target=_serve_process,
-                                    args=(child, solver, cores, busy, helper, limits),
+                                    args=(child, solver, cores, busy, helper, limits,
+                                          redis_url, role),
                                     daemon=True)
         self.port = 0
         self.metrics: dict[str, object] = {}
@@ -317,6 +340,7 @@ async def run_clients(url: str, players: int, spectators: int, seconds: float,
                       motion: Path, render: Path | None = None,
                       render_mode: str = "interpolate", cores: Cores = (),
                       stop_server: Callable[[], None] = lambda: None,
+                      spectator_urls: list[str] | None = None,
                       ) -> tuple[int, list[SpectatorStats], dict[str, Any],
                                  list[CaptureLog], list[Arrival]]:
     """Spectators here, players in a process of their own: a player's capture must not
@@ -324,8 +348,10 @@ async def run_clients(url: str, players: int, spectators: int, seconds: float,
     frames the players sent, the spectators' stats, the viewer's result, what the players
     captured and what spectator 1 received (for the display error). Once the players are
     done it calls ``stop_server``; the spectators end when the server closes their
-    connections (``EmbeddedServer.stop``)."""
-    watchers = [_DemoSpectator(url, f"spectator {i + 1}", record=i == 0)
+    connections (``EmbeddedServer.stop``). ``spectator_urls``: the spectators spread
+    over these servers in turn (the processes of one service); by default ``url``."""
+    far = spectator_urls or [url]
+    watchers = [_DemoSpectator(far[i % len(far)], f"spectator {i + 1}", record=i == 0)
                 for i in range(spectators)]
     spectator_tasks = [asyncio.create_task(w.run_until_closed()) for w in watchers]
     ctx = mp.get_context("spawn")
@@ -382,50 +408,85 @@ def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
              render: Path | None = None, render_mode: str = "interpolate",
              busy: bool | None = None, helper: bool | None = None,
              network: NetworkSpec | None = None,
-             limits: ServerLimits | None = None) -> DemoResult:
+             limits: ServerLimits | None = None, servers: int = 1) -> DemoResult:
     """The session; with ``render``, a headless viewer also draws the room to PNG files
     there and its ``capture_to_render`` joins the latency stages. ``busy``: the server
     busy-polls (``server.busy``); by default when it has a core of its own. ``helper``:
     a solver helper thread on the clients' core (``server.helper``); by default with
     busy polling. ``network``: every client connects through the emulator (its own
-    process, on the clients' cores), delayed both ways."""
+    process, on the clients' cores), delayed both ways. ``servers`` > 1: that many
+    server processes sharing the room through a Redis started here (``serve --redis``):
+    the players on the first, which owns the room; the spectators spread over all, and
+    the others' ``relay`` hop (published to received) joins the latency stages."""
     motion = motion or builtin_motion_path()
     cores = demo_cores()
-    if busy is None:
-        busy = len(cores) >= 2  # pin_to_cores gives the server the first core alone
-    try:
-        with EmbeddedServer(solver, cores, busy, helper, limits) as server, \
-                _network(server.port, network, cores) as proxy:
+    if busy is None:  # pin_to_cores gives the server the first core alone; with
+        # --servers they share it (and Redis), where polling would starve the others
+        busy = len(cores) >= 2 and servers == 1
+    if servers > 1 and helper is None:
+        helper = False  # its thread would spin on the clients' core
+    with contextlib.ExitStack() as stack:
+        redis_url = None
+        if servers > 1:
+            from posecast.client.redis_process import RedisProcess
+            redis_url = stack.enter_context(RedisProcess(
+                setup=partial(pin_to_cores, "server", cores))).url
+        try:
+            server = stack.enter_context(EmbeddedServer(solver, cores, busy, helper, limits,
+                                                        redis_url))
+            # the others (and Redis) on the servers' core too, apart from the clients,
+            # as on machines of their own (docs/performance.md, "Many processes")
+            others = [stack.enter_context(EmbeddedServer(solver, cores, False, False,
+                                                         limits, redis_url))
+                      for _ in range(servers - 1)]
+            proxy = stack.enter_context(_network(server.port, network, cores))
             pin_to_cores("spectators", cores)  # they run here (see run_clients)
             url = proxy.url if proxy is not None else server.url
+
+            def stop_others() -> None:
+                for other in others:
+                    other.stop()
+
+            def stop_servers() -> None:
+                server.stop()
+                if others:  # once the owner's last batches have crossed Redis
+                    threading.Timer(RELAY_SETTLE_S, stop_others).start()
             frames_sent, spectator_stats, viewed, captures, arrivals = _run(run_clients(
                 url, players, spectators, seconds, motion, render, render_mode,
-                cores, server.stop))
-    finally:
-        if cores:
-            os.sched_setaffinity(0, cores)
+                cores, stop_servers, [url, *(o.url for o in others)]))
+        finally:
+            if cores:
+                os.sched_setaffinity(0, cores)
     latency = LatencyRecorder.merged(s.latency for s in spectator_stats)
     for stage, samples in viewed.get("samples", {}).items():
         latency.add_values(stage, samples)
+    every = [server.metrics, *(o.metrics for o in others)]
+    relay = [v for m in every[1:] for v in m.get("relay_samples", [])]  # type: ignore[attr-defined]
+    if relay:
+        latency.add_values("relay", relay)
     metrics = server.metrics
+
+    def total(name: str) -> int:
+        return sum(int(m.get(name, 0)) for m in every)  # type: ignore[call-overload]
     rejected = metrics.get("rejected", {})
     return DemoResult(
         players=players, spectators=spectators, seconds=seconds,
         frames_sent=frames_sent,
-        frames_solved=int(metrics.get("frames_solved", 0)),  # type: ignore[call-overload]
+        frames_solved=total("frames_solved"),
         frames_delivered=sum(s.frames_received for s in spectator_stats),
-        frames_dropped=int(metrics.get("frames_dropped", 0)),  # type: ignore[call-overload]
-        batches=int(metrics.get("batches", 0)),  # type: ignore[call-overload]
+        frames_dropped=total("frames_dropped"),
+        batches=total("batches"),
         rejected=dict(rejected) if isinstance(rejected, dict) else {},
         latency=latency, rendered=len(viewed.get("files", [])),
-        frames_superseded=int(metrics.get("frames_superseded", 0)),  # type: ignore[call-overload]
-        frames_discarded=int(metrics.get("frames_discarded", 0)),  # type: ignore[call-overload]
-        frames_rejected=int(metrics.get("frames_rejected", 0)),  # type: ignore[call-overload]
-        frames_unsendable=int(metrics.get("frames_unsendable", 0)),  # type: ignore[call-overload]
+        frames_superseded=total("frames_superseded"),
+        frames_discarded=total("frames_discarded"),
+        frames_rejected=total("frames_rejected"),
+        frames_unsendable=total("frames_unsendable"),
         viewer=render is not None, network=str(network) if network else "loopback",
         # after the session, from what was recorded: it cost the session nothing
         display_error=measure_display_error(captures, arrivals, _server_rig(), solver),
-        proxy=proxy.stats if proxy is not None else {})
+        proxy=proxy.stats if proxy is not None else {}, servers=servers,
+        frames_relayed=total("frames_relayed"))
 
 
 def _server_rig() -> Rig:

@@ -20,7 +20,7 @@ from numpy.typing import ArrayLike, NDArray
 from posecast.protocol.batch import stage_latencies
 
 # the order stages are listed in: along the way a pose travels
-STAGE_ORDER = ("capture_to_server", "solve", "server", "network_to_spectator",
+STAGE_ORDER = ("capture_to_server", "solve", "server", "relay", "network_to_spectator",
                "capture_to_spectator", "capture_to_decoded", "receive_to_render",
                "capture_to_render",
                "receive_to_presented", "capture_to_presented")

@@ -8,6 +8,7 @@ import shutil
 import socket
 import subprocess
 import time
+from collections.abc import Callable
 from types import TracebackType
 
 import redis
@@ -29,9 +30,12 @@ def free_port() -> int:
 class RedisProcess:
     """``with RedisProcess() as r: r.url`` -> redis://127.0.0.1:PORT, answering PING."""
 
-    def __init__(self, port: int | None = None) -> None:
+    def __init__(self, port: int | None = None,
+                 setup: Callable[[], None] | None = None) -> None:
+        """``setup``: run in the child before redis-server starts (the demo pins it)."""
         self.port = port or free_port()
         self.url = f"redis://127.0.0.1:{self.port}"
+        self.setup = setup
         self._proc: subprocess.Popen[bytes] | None = None
 
     def start(self) -> RedisProcess:
@@ -41,7 +45,7 @@ class RedisProcess:
         self._proc = subprocess.Popen(
             [exe, "--port", str(self.port), "--bind", "127.0.0.1", "--save", "",
              "--appendonly", "no", "--protected-mode", "yes", "--loglevel", "warning"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, preexec_fn=self.setup)
         client = redis.Redis(port=self.port, socket_connect_timeout=0.5)
         t_end = time.monotonic() + START_TIMEOUT_S
         try:

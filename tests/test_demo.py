@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import time
 
 import pytest
@@ -78,3 +79,27 @@ def test_demo_renders_moving_avatars(tmp_path, capsys: pytest.CaptureFixture[str
     # avatars are drawn (pixels far from the floor colour) and they moved between frames
     assert (np.abs(last - background).sum(axis=2) > 60).mean() > 0.01
     assert (np.abs(first - last).sum(axis=2) > 30).mean() > 0.002
+
+
+def test_demo_over_two_server_processes_relays_every_solved_frame(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """`demo --servers 2`: the players on the first process, the spectators spread over
+    both (the second's through Redis); every solved frame reaches the other process, and
+    every spectator gets it or counts it dropped; the relay hop is in the table."""
+    if shutil.which("redis-server") is None:
+        pytest.skip("no redis-server here (apt-get install redis-server)")
+    assert main(["demo", "--players", "2", "--spectators", "2", "--seconds", "2",
+                 "--servers", "2", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["servers"] == 2 and doc["frames_solved"] > 0
+    assert doc["frames_relayed"] == doc["frames_solved"]  # to the one other process
+    assert doc["frames_delivered"] + doc["frames_dropped"] == doc["frames_solved"] * 2
+    relay = doc["latency_ms"]["relay"]
+    assert 0.0 < relay["p50"] <= relay["p99"] < 2000.0
+
+
+def test_demo_servers_must_be_one_or_more(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_:
+        main(["demo", "--servers", "0"])
+    assert exit_.value.code == 2
+    assert "--servers" in capsys.readouterr().err

@@ -1,12 +1,16 @@
 """deploy/: the example config holds every serve option with its default and loads; the
 systemd unit passes ``systemd-analyze verify`` with nothing to say and its ExecStart is a
 valid serve command; the Dockerfile runs as a user of its own, warms the kernels as that
-user, exposes serve's port and checks /healthz; and the healthcheck script answers for a
-real server over http and https, and for none."""
+user, exposes serve's port and checks /healthz; the healthcheck script answers for a
+real server over http and https, and for none; and compose.yaml's processes are valid
+`serve --redis` commands, each reached through the Caddyfile's route that its
+--public-url names, sharing one secret and waiting for a healthy Redis."""
 
 from __future__ import annotations
 
 import argparse
+import asyncio
+import contextlib
 import dataclasses
 import json
 import os
@@ -16,15 +20,27 @@ import shutil
 import signal
 import subprocess
 import sys
+import time
 import tomllib
+import urllib.request
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
+from urllib.parse import urlsplit
 
 import pytest
+import yaml
 from test_cli_errors import WAIT, Command, _closed_port
+from test_cluster import Process, running, until
 
 from posecast.client import arguments
+from posecast.client.builtin import builtin_motion_path
 from posecast.client.cli import _parser
 from posecast.client.config_file import config_defaults, option_keys
+from posecast.client.player import Player
+from posecast.client.redis_process import RedisMissingError, RedisProcess, free_port
+from posecast.client.sources import open_source
+from posecast.client.spectator import Spectator
 from posecast.server.limits import ServerLimits
 
 REPO = Path(__file__).resolve().parent.parent
@@ -33,6 +49,9 @@ EXAMPLE = DEPLOY / "posecast.toml"
 UNIT = DEPLOY / "posecast.service"
 DOCKERFILE = DEPLOY / "Dockerfile"
 HEALTHCHECK = DEPLOY / "healthcheck.py"
+COMPOSE = DEPLOY / "compose.yaml"
+CADDYFILE = DEPLOY / "Caddyfile"
+CADDY = shutil.which("caddy")
 SYSTEMD_ANALYZE = shutil.which("systemd-analyze")
 OPENSSL = shutil.which("openssl")
 
@@ -267,3 +286,451 @@ def test_the_healthcheck_passes_for_a_serving_server_and_fails_without_one(
     failed = _healthcheck(env)  # nothing listens there now
     assert failed.returncode == 1
     assert failed.stderr.startswith(f"healthcheck: {scheme}://127.0.0.1:{port}/healthz: ")
+
+
+# --------------------------------------------------------------------------- compose.yaml
+# a secret as `openssl rand -hex 32` makes one: what deploy/.env holds
+SECRET_ENV = {"POSECAST_SECRET": "ab" * 32}
+_VARIABLE = re.compile(r"\$(?:\$|\{(\w+)(?:(:?[-?+])([^}]*))?\}|(\w+))")
+
+
+def _interpolate(value: Any, env: Mapping[str, str]) -> Any:
+    """Compose's ${VAR}, ${VAR:-default}, ${VAR-default}, ${VAR:?error}, ${VAR:+other}
+    and $$ in every string of ``value``; ValueError where Compose refuses to start."""
+    if isinstance(value, dict):
+        return {k: _interpolate(v, env) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_interpolate(v, env) for v in value]
+    if not isinstance(value, str):
+        return value
+
+    def one(found: re.Match[str]) -> str:
+        if found.group(0) == "$$":
+            return "$"
+        name = found.group(1) or found.group(4)
+        how, text = found.group(2), found.group(3) or ""
+        given = env.get(name)
+        # with the colon, set to "" counts as unset
+        present = given is not None and (given != "" or not how or ":" not in how)
+        if how in ("-", ":-"):
+            return given or "" if present else text
+        if how in ("?", ":?"):
+            if not present:
+                raise ValueError(f"required variable {name} is missing a value: {text}")
+            return given or ""
+        if how in ("+", ":+"):
+            return text if present else ""
+        return given or ""
+
+    return _VARIABLE.sub(one, value)
+
+
+def _compose(env: Mapping[str, str] = SECRET_ENV) -> dict[str, Any]:
+    """compose.yaml as Compose reads it: YAML with its anchors and merge keys, then the
+    variables of ``env`` (the shell's and deploy/.env's)."""
+    loaded = yaml.safe_load(COMPOSE.read_text())
+    return _interpolate({k: v for k, v in loaded.items() if not k.startswith("x-")}, env)
+
+
+def _posecast_services(compose: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """The services built from deploy/Dockerfile, by name."""
+    return {name: service for name, service in compose["services"].items()
+            if "build" in service and (COMPOSE.parent / service["build"]["context"]
+                                       / service["build"]["dockerfile"]).resolve()
+            == DOCKERFILE}
+
+
+def _environment(service: dict[str, Any]) -> dict[str, str]:
+    env = service.get("environment", {})
+    if isinstance(env, list):  # the - KEY=VALUE form
+        return dict(item.partition("=")[::2] for item in env)
+    return {k: str(v) for k, v in env.items()}
+
+
+def _serve_args(service: dict[str, Any]) -> argparse.Namespace:
+    """The image's entry point, then the service's command (more serve flags), parsed by
+    serve's own parser: a bad flag or URL fails here as it would in the container."""
+    entry = json.loads(next(rest for word, rest in _instructions() if word == "ENTRYPOINT"))
+    assert "entrypoint" not in service, "the image's entry point is the serve command"
+    command = service["command"]
+    assert isinstance(command, list), "the exec form: no shell between Compose and serve"
+    argv = [*entry, *command]
+    argv[argv.index("--config") + 1] = str(EXAMPLE)  # the image's copy of it
+    assert argv[:2] == ["posecast", "serve"]
+    return _parser().parse_args(argv[1:])
+
+
+def test_compose_runs_redis_three_processes_from_the_image_and_the_proxy() -> None:
+    compose = _compose()
+    services = compose["services"]
+    processes = _posecast_services(compose)
+    assert sorted(processes) == ["posecast-1", "posecast-2", "posecast-3"]
+    assert set(services) == {"redis", "proxy", *processes}
+    assert services["redis"]["image"].split(":") == ["redis", "7"]
+    for name, service in processes.items():
+        assert (COMPOSE.parent / service["build"]["context"]).resolve() == REPO, name
+        assert service["restart"] == "unless-stopped", name
+        assert "ports" not in service, f"{name}: players come in through the proxy"
+    # built once, as one image for all three
+    assert len({service["image"] for service in processes.values()}) == 1
+
+
+@pytest.mark.parametrize("host", [None, "play.example.net"], ids=["default", "POSECAST_HOST"])
+def test_each_process_is_a_valid_serve_redis_command_with_its_own_public_url(
+        host: str | None) -> None:
+    env = {**SECRET_ENV, **({"POSECAST_HOST": host} if host else {})}
+    compose = _compose(env)
+    processes = _posecast_services(compose)
+    port = _serve()._option_string_actions["--port"].default
+    urls = set()
+    for name, service in processes.items():
+        args = _serve_args(service)
+        assert args.command == "serve" and args.host == "0.0.0.0", name
+        # the port the healthcheck asks (the config's, 8765) and the proxy dials
+        assert args.port == port, name
+        redis = urlsplit(args.redis)
+        assert redis.scheme == "redis" and redis.hostname in compose["services"], name
+        assert redis.hostname == "redis" and (redis.port or 6379) == 6379, name
+        public = urlsplit(args.public_url)
+        assert public.scheme == "wss", f"{name}: the proxy serves TLS"
+        assert public.hostname == (host or "posecast.example.org"), name
+        assert public.path == f"/s{name.rpartition('-')[2]}/", name
+        urls.add(args.public_url)
+    assert len(urls) == len(processes), "two processes would send players to one place"
+
+
+def test_every_process_has_the_same_secret_from_the_environment() -> None:
+    raw = yaml.safe_load(COMPOSE.read_text())["services"]
+    compose = _compose()
+    sources = {_environment(raw[name]).get("POSECAST_SECRET")
+               for name in _posecast_services(compose)}
+    assert len(sources) == 1, f"the processes' secrets come from different places: {sources}"
+    source = sources.pop()
+    assert source is not None and source.startswith("${POSECAST_SECRET"), source
+    for name, service in _posecast_services(compose).items():
+        assert _environment(service)["POSECAST_SECRET"] == SECRET_ENV["POSECAST_SECRET"], name
+    # deploy/.env, where it is kept, stays out of git and of the image's build context
+    assert "**/.env" in (REPO / ".dockerignore").read_text().split()
+    assert ".env" in (REPO / ".gitignore").read_text().split()
+    # no secret given: Compose refuses to start, rather than three open servers
+    with pytest.raises(ValueError, match="POSECAST_SECRET"):
+        _compose({})
+    with pytest.raises(ValueError, match="POSECAST_SECRET"):
+        _compose({"POSECAST_SECRET": ""})
+
+
+def test_redis_is_checked_and_the_processes_wait_for_it() -> None:
+    compose = _compose()
+    redis = compose["services"]["redis"]
+    assert redis["healthcheck"]["test"][:1] in (["CMD"], ["CMD-SHELL"])
+    assert " ".join(redis["healthcheck"]["test"][1:]) == "redis-cli ping"
+    # nothing in Redis outlives the processes that renew it: no snapshot, no AOF
+    assert redis["command"][0] == "redis-server" and "--save" in redis["command"]
+    steps = _instructions()
+    check = next(rest for word, rest in steps if word == "HEALTHCHECK")
+    image_check = json.loads(check[check.index("CMD") + len("CMD"):])
+    for name, service in _posecast_services(compose).items():
+        assert service["depends_on"]["redis"]["condition"] == "service_healthy", name
+        # serve's own /healthz, as the image's HEALTHCHECK asks it
+        assert service["healthcheck"]["test"] == ["CMD", *image_check], name
+
+
+def test_the_proxy_is_caddy_on_80_and_443_with_the_caddyfile() -> None:
+    compose = _compose()
+    proxy = compose["services"]["proxy"]
+    assert proxy["image"].split(":")[0] == "caddy"
+    published = {str(p).split(":")[0] for p in proxy["ports"]}
+    assert {"80", "443"} <= published
+    mounts = [v.split(":") for v in proxy["volumes"]]
+    caddyfile = next(m for m in mounts if m[1] == "/etc/caddy/Caddyfile")
+    assert (COMPOSE.parent / caddyfile[0]).resolve() == CADDYFILE
+    assert any(m[1] == "/data" for m in mounts), "certificates lost with the container"
+    assert set(proxy["depends_on"]) == set(_posecast_services(compose))
+    # the site's name is the one the public URLs carry
+    raw = yaml.safe_load(COMPOSE.read_text())["services"]["proxy"]
+    assert _environment(raw)["POSECAST_HOST"] == "${POSECAST_HOST:-posecast.example.org}"
+    assert _caddy_env(_site().words[0], {}) == "posecast.example.org"
+    assert _caddy_env(_site().words[0], {"POSECAST_HOST": "a.example"}) == "a.example"
+
+
+# --------------------------------------------------------------------------- Caddyfile
+@dataclasses.dataclass
+class _Block:
+    """A Caddyfile line (its words) and the block it opens, if any."""
+
+    words: list[str]
+    body: list[_Block]
+
+    def first(self, directive: str) -> _Block:
+        return next(b for b in self.body if b.words[0] == directive)
+
+
+def _caddyfile() -> list[_Block]:
+    root = _Block([], [])
+    stack = [root]
+    for number, line in enumerate(CADDYFILE.read_text().splitlines(), 1):
+        words = []
+        for word in line.split():
+            if word.startswith("#"):
+                break
+            words.append(word)
+        if words == ["}"]:
+            stack.pop()
+            assert stack, f"{CADDYFILE.name}: line {number}: a }} that closes nothing"
+        elif words:
+            block = _Block(words[:-1] if words[-1] == "{" else words, [])
+            stack[-1].body.append(block)
+            if words[-1] == "{":
+                stack.append(block)
+    assert len(stack) == 1, f"{CADDYFILE.name}: a {{ never closed"
+    return root.body
+
+
+def _site() -> _Block:
+    sites = [b for b in _caddyfile() if b.body and b.words]
+    assert len(sites) == 1, "one site: the service's public name"
+    return sites[0]
+
+
+def _caddy_env(text: str, env: Mapping[str, str]) -> str:
+    """Caddy's {$VAR} and {$VAR:default} in a Caddyfile."""
+    return re.sub(r"\{\$(\w+)(?::([^}]*))?\}",
+                  lambda m: env.get(m.group(1)) or m.group(2) or "", text)
+
+
+def _path_matches(pattern: str, path: str) -> bool:
+    """Caddy's path matcher, case-insensitive: /a/* a prefix, */a a suffix, *a* a part,
+    other * a glob of one segment, else the whole path."""
+    pattern, path = pattern.lower(), path.lower()
+    if len(pattern) > 1 and pattern.startswith("*") and pattern.endswith("*"):
+        return pattern[1:-1] in path
+    if pattern.startswith("*"):
+        return path.endswith(pattern[1:])
+    if pattern.endswith("*"):
+        return path.startswith(pattern[:-1])
+    if "*" in pattern:
+        return re.fullmatch(re.escape(pattern).replace(r"\*", "[^/]*"), path) is not None
+    return path == pattern
+
+
+Route = tuple[list[str], str, dict[str, Any]]  # upstreams, the path they see, proxy options
+
+
+def _route_by_reading(path: str) -> Route:
+    """Where the Caddyfile sends ``path``, read as Caddy does: handle and handle_path
+    blocks exclude each other; one with a path matcher before the catch-all (longest
+    first); handle_path strips what its matcher names before the *."""
+    blocks = [b for b in _site().body if b.words[0] in ("handle", "handle_path")]
+    matched = sorted((b for b in blocks if len(b.words) == 2 and b.words[1].startswith("/")),
+                     key=lambda b: -len(b.words[1]))
+    for block in [*matched, *(b for b in blocks if len(b.words) == 1)]:
+        if len(block.words) == 2 and not _path_matches(block.words[1], path):
+            continue
+        if block.words[0] == "handle_path":
+            path = path[len(block.words[1].rstrip("*").rstrip("/")):] or "/"
+        proxy = block.first("reverse_proxy")
+        options = {b.words[0]: b.words[1:] for b in proxy.body}
+        return proxy.words[1:], path, options
+    raise AssertionError(f"{CADDYFILE.name} sends {path} nowhere")
+
+
+def _route_by_caddy(adapted: dict[str, Any]) -> Any:
+    """Where Caddy's own JSON of the Caddyfile (``caddy adapt``) sends a path, for a client
+    outside the private ranges."""
+    server = next(iter(adapted["apps"]["http"]["servers"].values()))
+    site = server["routes"][0]
+    routes = site["handle"][0]["routes"]
+
+    def route(path: str) -> Route:
+        for entry in routes:
+            sets = entry.get("match", [{}])
+            if not any(_path_matches_any(s.get("path", ["*"]), path) for s in sets):
+                continue
+            upstreams: list[str] = []
+            options: dict[str, Any] = {}
+            for handler in _handlers(entry["handle"]):
+                if handler["handler"] == "static_response":
+                    return [], f"status {handler.get('status_code', 200)}", {}
+                if handler["handler"] == "rewrite" and "strip_path_prefix" in handler:
+                    prefix = handler["strip_path_prefix"]
+                    if path.lower().startswith(prefix.lower()):
+                        path = path[len(prefix):] or "/"
+                if handler["handler"] == "reverse_proxy":
+                    upstreams = [u["dial"] for u in handler["upstreams"]]
+                    options = handler
+            return upstreams, path, options
+        raise AssertionError(f"caddy sends {path} nowhere")
+    return route
+
+
+def _path_matches_any(patterns: list[str], path: str) -> bool:
+    return any(p == "*" or _path_matches(p, path) for p in patterns)
+
+
+def _handlers(handlers: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Every handler in order, subroutes opened (their routes here have no matchers)."""
+    flat = []
+    for handler in handlers:
+        if handler["handler"] == "subroute":
+            for route in handler["routes"]:
+                flat.extend(_handlers(route["handle"]))
+        else:
+            flat.append(handler)
+    return flat
+
+
+def _check_routes(route: Any) -> None:
+    """Each process's public URL reaches that process alone, with the prefix gone; the
+    rest goes to all of them, load-balanced over those passing /healthz."""
+    compose = _compose()
+    processes = _posecast_services(compose)
+    everyone = {f"{name}:{_serve_args(s).port}" for name, s in processes.items()}
+    for name, service in processes.items():
+        public = urlsplit(_serve_args(service).public_url).path
+        upstreams, seen, _ = route(public)
+        assert upstreams == [f"{name}:{_serve_args(service).port}"], (public, upstreams)
+        assert seen == "/", f"{public} reaches {name} as {seen}"
+        upstreams, seen, _ = route(public + "healthz")  # the same process's own pages
+        assert upstreams == [f"{name}:{_serve_args(service).port}"] and seen == "/healthz"
+    for path in ("/", "/static/main.js", "/healthz", "/avatar.json", "/s1", "/s12/"):
+        upstreams, seen, options = route(path)
+        assert set(upstreams) == everyone and len(upstreams) == len(everyone), path
+        assert seen == path, f"{path} reaches a process as {seen}"
+        assert options, f"{path}: no load balancing or health checks"
+
+
+def test_the_caddyfile_routes_each_process_and_balances_the_rest() -> None:
+    _check_routes(_route_by_reading)
+    options = _route_by_reading("/")[2]
+    assert options["health_uri"] == ["/healthz"]
+    assert "lb_policy" in options and "lb_try_duration" in options
+
+
+@pytest.mark.skipif(CADDY is None, reason="no caddy here (Debian: apt-get install caddy)")
+def test_caddy_itself_reads_the_caddyfile_the_same_way() -> None:
+    """caddy adapt: the Caddyfile as Caddy understands it (JSON), routed the same way."""
+    proc = subprocess.run([CADDY or "", "adapt", "--config", str(CADDYFILE), "--adapter",
+                           "caddyfile"], capture_output=True, text=True, timeout=WAIT,
+                          env={**os.environ, "POSECAST_HOST": "play.example.net"})
+    assert proc.returncode == 0, proc.stderr
+    adapted = json.loads(proc.stdout)
+    server = next(iter(adapted["apps"]["http"]["servers"].values()))
+    assert server["routes"][0]["match"] == [{"host": ["play.example.net"]}]
+    route = _route_by_caddy(adapted)
+    _check_routes(route)
+    balanced = route("/")[2]
+    assert balanced["health_checks"]["active"]["uri"] == "/healthz"
+    assert balanced["load_balancing"]["try_duration"] > 0
+    # a process's /metrics from outside: refused (the monitoring network scrapes it)
+    assert route("/s1/metrics")[1] == "status 403" and route("/metrics")[1] == "status 403"
+
+
+def _local_caddyfile(proxy_port: int, upstreams: Mapping[str, int]) -> str:
+    """The Caddyfile on this machine: plain http on 127.0.0.1:``proxy_port`` for the site,
+    each service's address (posecast-1:8765) the port of a process here, no admin API."""
+    text = CADDYFILE.read_text()
+    site = _site().words[0]
+    assert text.count(f"{site} {{") == 1
+    text = text.replace(f"{site} {{", f"http://127.0.0.1:{proxy_port} {{")
+    for address, port in upstreams.items():
+        assert address in text, address
+        text = re.sub(rf"(?<![\w-]){re.escape(address)}(?![\w-])", f"127.0.0.1:{port}", text)
+    return "{\n\tadmin off\n}\n" + text
+
+
+def _get(url: str) -> tuple[int, bytes]:
+    try:
+        with urllib.request.urlopen(url, timeout=5) as reply:
+            return reply.status, reply.read()
+    except OSError:
+        return 0, b""
+
+
+@pytest.mark.skipif(CADDY is None, reason="no caddy here (Debian: apt-get install caddy)")
+def test_through_caddy_players_reach_the_owners_route_and_spectators_any_process(
+        tmp_path: Path) -> None:
+    """The Caddyfile served by a real Caddy in front of three processes sharing a real
+    Redis (in this event loop, each with the --public-url of its route): players and
+    spectators all given the proxy's / only. The second player lands on another process
+    and is sent to the owner's /sK/, which reaches that process; spectators on the
+    others receive both players' frames; /sK/healthz is process K's."""
+    try:
+        redis = RedisProcess().start()
+    except RedisMissingError as err:
+        pytest.skip(str(err))
+    compose = _compose()
+    names = sorted(_posecast_services(compose))
+    proxy_port = free_port()
+    proxy = f"ws://127.0.0.1:{proxy_port}"
+    log = tmp_path / "caddy.log"
+
+    async def main() -> None:
+        processes = [Process(redis.url) for _ in names]
+        for k, process in enumerate(processes, 1):
+            process.cluster.public_url = f"{proxy}/s{k}/"
+        async with contextlib.AsyncExitStack() as stack:
+            for process in processes:
+                await stack.enter_async_context(process)
+            config = tmp_path / "Caddyfile"
+            config.write_text(_local_caddyfile(proxy_port, {
+                f"{name}:{_serve_args(compose['services'][name]).port}": p.port
+                for name, p in zip(names, processes, strict=True)}))
+            with log.open("w") as out:
+                caddy = await asyncio.create_subprocess_exec(
+                    CADDY or "", "run", "--config", str(config), "--adapter", "caddyfile",
+                    stdout=out, stderr=out, env={**os.environ,
+                                                 "XDG_CONFIG_HOME": str(tmp_path / "config"),
+                                                 "XDG_DATA_HOME": str(tmp_path / "data")})
+            stack.push_async_callback(_stop, caddy)
+            t_end = time.monotonic() + WAIT
+            while (await asyncio.to_thread(_get, f"http://127.0.0.1:{proxy_port}/healthz")
+                   )[0] != 200:
+                assert caddy.returncode is None, log.read_text()[-2000:]
+                assert time.monotonic() < t_end, "caddy never answered"
+                await asyncio.sleep(0.1)
+            status, page = await asyncio.to_thread(
+                _get, f"http://127.0.0.1:{proxy_port}/?room=hall")
+            assert status == 200 and b"<html" in page.lower()
+
+            sources = [open_source(f"bvh:{builtin_motion_path()}", loop=True)
+                       for _ in range(2)]
+            stack.callback(lambda: [s.close() for s in sources])
+            first, second = (Player(f"{proxy}/", "hall", f"p{i}", s)
+                             for i, s in enumerate(sources))
+            await stack.enter_async_context(running(first))
+            await until(lambda: any(p.session.metrics.frames_solved > 10 for p in processes),
+                        "the first player's process owning the room")
+            k, owner = next((k, p) for k, p in enumerate(processes, 1)
+                            if p.session.metrics.frames_solved)
+            # least_conn: the second goes to a process without the first, and on
+            await stack.enter_async_context(running(second))
+            await until(lambda: second.stats.frames_sent > 20, "the second streaming")
+            assert second.session is not None and second.session.url == f"{proxy}/s{k}/"
+            assert sum(p.cluster.stats.redirects for p in processes) == 1
+            assert {first.stats.avatar_id, second.stats.avatar_id} <= set(
+                owner.session.rooms["hall"].avatars)
+            for j in range(1, len(processes) + 1):  # /sJ/ is process J
+                status, body = await asyncio.to_thread(
+                    _get, f"http://127.0.0.1:{proxy_port}/s{j}/healthz")
+                assert status == 200 and json.loads(body)["players"] == (2 if j == k else 0)
+
+            viewers = [Spectator(f"{proxy}/", "hall", f"v{i}") for i in range(2)]
+            await stack.enter_async_context(running(*viewers))
+            ids = {first.stats.avatar_id, second.stats.avatar_id}
+            await until(lambda: all(set(v.stats.frames_per_avatar) == ids
+                                    and min(v.stats.frames_per_avatar.values()) > 20
+                                    for v in viewers), "both players' frames to the viewers")
+            elsewhere = sum(len(p.session.rooms["hall"].spectators) for p in processes
+                            if p is not owner and "hall" in p.session.rooms)
+            assert elsewhere >= 1, "no spectator went through another process"
+
+    try:
+        asyncio.run(main())
+    finally:
+        redis.stop()
+
+
+async def _stop(proc: asyncio.subprocess.Process) -> None:
+    if proc.returncode is None:
+        proc.terminate()
+    await asyncio.wait_for(proc.wait(), WAIT)
