@@ -464,6 +464,23 @@ def _parser() -> argparse.ArgumentParser:
     bv.add_argument("--no-helper", dest="helper", action="store_false",
                     help="the server solves alone (see demo --no-helper)")
     bv.add_argument("--json", action="store_true", help="print one JSON document")
+    bf = bsub.add_parser("fanout", help="spectators one server process serves, and several "
+                         "together through Redis (serve --redis; needs redis-server)")
+    bf.add_argument("--processes", type=_positive_ints, default=[1, 2],
+                    help="numbers of server processes to measure, comma-separated "
+                         "(default: 1,2)")
+    bf.add_argument("--players", type=arg.positive_int, default=4,
+                    help="players at 90 Hz in the room (on the first process)")
+    bf.add_argument("--start", type=arg.positive_int, default=200,
+                    help="spectators of the first step (then x1.5 until one fails, "
+                         "then halving the gap)")
+    bf.add_argument("--max", type=arg.positive_int, default=20000,
+                    help="spectators not to go beyond (default: 20000)")
+    bf.add_argument("--budget-ms", type=arg.positive_float, default=10.0,
+                    help="p99 capture to spectator each process's probe must keep")
+    bf.add_argument("--seconds", type=arg.positive_float, default=3.0,
+                    help="length of each step's measurement")
+    bf.add_argument("--json", action="store_true", help="print one JSON document")
     bu = bsub.add_parser("startup", help="seconds the first commands take after set-up "
                          "(--version, serve until listening, eval of the built-in clip)")
     bu.add_argument("--runs", type=arg.positive_int, default=5,
@@ -687,6 +704,8 @@ def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
         doc = bench_hostile(args.attack, args.seconds)
         print(json.dumps(doc) if args.json else format_hostile_table(doc))
         return 0
+    if args.command == "bench" and args.bench == "fanout":
+        return _bench_fanout(args)
     if args.command == "bench" and args.bench == "startup":
         from posecast.client.bench_startup import bench_startup, format_startup_table
 
@@ -694,6 +713,22 @@ def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
         print(json.dumps(doc) if args.json else format_startup_table(doc))
         return 0
     return 2
+
+
+def _bench_fanout(args: argparse.Namespace) -> int:
+    from posecast.client.bench_fanout import bench_fanout, format_fanout_table, format_step
+    from posecast.client.redis_process import RedisMissingError
+
+    try:  # a line per step as it ends: a whole run takes a minute or two
+        doc = bench_fanout(args.processes, args.players, args.start, args.seconds,
+                           args.budget_ms, args.max, progress=lambda step: print(
+                               format_step(step), file=sys.stderr, flush=True))
+    except RedisMissingError as err:
+        return _fail("bench fanout", err)
+    except RuntimeError as err:  # spectators that could not join, a server that died
+        return _fail("bench fanout", err)
+    print(json.dumps(doc) if args.json else format_fanout_table(doc))
+    return 0
 
 
 def _view(args: argparse.Namespace) -> int:

@@ -181,6 +181,9 @@ def pin_to_cores(role: str, cores: Cores) -> None:
     """
     if len(cores) < 2:
         return
+    if role.startswith("core:"):  # one of many servers: "core:K", the K-th core (wrapping)
+        os.sched_setaffinity(0, {cores[int(role[5:]) % len(cores)]})
+        return
     os.sched_setaffinity(0, cores[:1] if role == "server" else cores[1:])
 
 

@@ -170,8 +170,11 @@ class Cluster:
                 with contextlib.suppress(RedisError, OSError):
                     await link.disconnect()
         pool = self.redis.connection_pool  # its class: TCP, TLS (rediss://) or unix://
-        publisher = pool.connection_class(**pool.connection_kwargs)
-        subscriber = pool.connection_class(**pool.connection_kwargs)
+        # no socket timeout: with one, redis-py writes through asyncio.wait_for, a task
+        # of its own, whose turn came after the room's whole local fan-out (1-5 ms)
+        kwargs = {**pool.connection_kwargs, "socket_timeout": None}
+        publisher = pool.connection_class(**kwargs)
+        subscriber = pool.connection_class(**kwargs)
         await publisher.connect()
         await subscriber.connect()
         channels = [f"{PREFIX}process:{self.process_id}",

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
+import shutil
 import subprocess
 import sys
 import time
@@ -18,6 +20,7 @@ import pytest
 from pydantic import ValidationError
 
 from posecast.client.builtin import builtin_motion_path
+from posecast.client.cli import main
 from posecast.client.connection import Reconnect
 from posecast.client.player import Player
 from posecast.client.redis_process import RedisMissingError, RedisProcess, free_port
@@ -372,3 +375,25 @@ def test_a_redirect_names_a_websocket_url() -> None:
     for bad in ("http://host/", "javascript:alert(1)", ""):
         with pytest.raises(ValidationError):
             Redirect(url=bad)
+
+
+def test_bench_fanout_measures_each_process_count(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """The bench's machinery at a toy size: both process counts reach the cap with every
+    probe's latency measured and nothing dropped, a line per step as it goes."""
+    if shutil.which("redis-server") is None:
+        pytest.skip("no redis-server here (apt-get install redis-server)")
+    assert main(["bench", "fanout", "--processes", "1,2", "--start", "4", "--max", "6",
+                 "--seconds", "1", "--budget-ms", "1000", "--json"]) == 0
+    out = capsys.readouterr()
+    doc = json.loads(out.out)
+    assert [r["processes"] for r in doc["results"]] == [1, 2]
+    for r in doc["results"]:
+        assert r["spectators"] == 6
+        assert [s["spectators"] for s in r["steps"]] == [4, 6]
+        for step in r["steps"]:
+            assert len(step["capture_to_spectator_p99_ms"]) == r["processes"]
+            assert all(0 < p < 1000 for p in step["capture_to_spectator_p99_ms"])
+            assert step["dropped"] == [0.0] * r["processes"] and step["held"]
+    assert doc["results"][1]["ratio"] == 1.0
+    assert out.err.count("spectators: p99") == 4
