@@ -11,9 +11,9 @@ Each process runs on a core of its own, and so does the load of its spectators, 
 lower priority: every process pays for its own load alike, and a second process brings a
 second core. The load is spectators that count the bytes they receive and nothing else
 (``ByteCounter``): a websockets client parses each frame in Python at about the cost of
-the server's send, and would measure the load generator instead of the server. One real
-spectator per process (the probe, joined last: the last of its fan-out) decodes
-everything and gives the latency. On machines of their own, without the load beside
+the server's send, and would measure the load generator instead of the server. A few real
+spectators per process (the probes, joined last: the last of its fan-out) decode
+everything and give the latency. On machines of their own, without the load beside
 them, the processes would hold more.
 """
 
@@ -42,6 +42,7 @@ from posecast.client.demo import (
     demo_cores,
     pin_to_cores,
 )
+from posecast.client.latency import LatencyRecorder
 from posecast.client.redis_process import RedisProcess
 from posecast.client.spectator import Spectator
 from posecast.protocol import PROTOCOL_VERSION, Hello, encode
@@ -51,6 +52,9 @@ BUDGET_MS = 10.0
 MAX_DROPPED = 0.01  # of the frames a process offered its spectators
 CONNECT_AT_ONCE = 64  # handshakes in flight while a step's spectators join
 SETTLE_S = 0.5  # after the spectators joined, before measuring
+# real spectators per process, joined after the load (the last of its fan-out): a p99
+# of one probe's 3 s is its third worst frame, which made the steps a lottery
+PROBES = 3
 # the load generator yields the cores to the servers, as on machines of its own; it needs
 # little (counting bytes), and one that falls behind shows as the servers' dropped frames
 LOAD_NICENESS = 10
@@ -177,12 +181,16 @@ class Step:
 
 
 async def _measure(urls: list[str], seconds: float) -> tuple[list[float], list[float]]:
-    probes = [Spectator(url, ROOM, f"probe {k + 1}") for k, url in enumerate(urls)]
+    probes = [[Spectator(url, ROOM, f"probe {k + 1}.{j + 1}") for j in range(PROBES)]
+              for k, url in enumerate(urls)]
     before = [_scrape(u) for u in urls]
-    stats = await asyncio.gather(*(p.run(seconds=seconds) for p in probes))
+    stats = await asyncio.gather(*(asyncio.gather(*(p.run(seconds=seconds) for p in ps))
+                                   for ps in probes))
     after = [_scrape(u) for u in urls]
-    p99 = [s.latency.summary().get("capture_to_spectator", {}).get("p99", math.inf)
-           for s in stats]
+    p99 = []
+    for per_process in stats:  # the probes of a process together: 3x the samples
+        samples = LatencyRecorder.merged(s.latency for s in per_process).summary()
+        p99.append(samples.get("capture_to_spectator", {}).get("p99", math.inf))
     dropped = []
     for b, a in zip(before, after, strict=True):
         d = {k: a.get(k, 0.0) - b.get(k, 0.0) for k in a}
@@ -194,7 +202,7 @@ async def _measure(urls: list[str], seconds: float) -> tuple[list[float], list[f
 
 
 def _step(urls: list[str], spectators: int, seconds: float, budget_ms: float) -> Step:
-    load = max(0, spectators - len(urls))  # the probes are spectators too
+    load = max(0, spectators - PROBES * len(urls))  # the probes are spectators too
     with _load(urls, load) as pipes:
         for pipe in pipes:
             if not pipe.poll(120):
@@ -216,29 +224,40 @@ async def _settled_measure(urls: list[str], seconds: float) -> tuple[list[float]
     return await _measure(urls, seconds)
 
 
+def _players_on(core: str, cores: tuple[int, ...], *args: Any) -> None:
+    pin_to_cores(core, cores)
+    _players_process(*args)
+
+
 @contextlib.contextmanager
 def _service(processes: int, players: int) -> Iterator[list[str]]:
     """Redis, ``processes`` servers each pinned to a core of its own (as far as the
-    machine has them), and the players streaming into the first."""
+    machine has them), and the players streaming into the first. The players, Redis and
+    this process (the probes) share the first server's core whatever the number of
+    processes: with them on a core of their own, one process had the machine's second
+    core for its load's helpers, and two processes held no more than one."""
     cores = demo_cores()
+    first = "core:0"
     with contextlib.ExitStack() as stack:
-        # Redis beside the last server, not the first: the first's fan-out holds its
-        # core for milliseconds at a time, and a hop waiting behind it took 1-5 ms
         redis_url = stack.enter_context(RedisProcess(
-            setup=partial(pin_to_cores, f"core:{len(cores) - 1}", cores))).url
+            setup=partial(pin_to_cores, first, cores))).url
         servers = [stack.enter_context(EmbeddedServer(
             cores=cores, redis_url=redis_url, role=f"core:{k}", limits=LIMITS))
             for k in range(processes)]
         ctx = mp.get_context("spawn")
         pipe, child = ctx.Pipe()
-        process = ctx.Process(target=_players_process, args=(
-            child, servers[0].url, players, 24 * 3600.0, builtin_motion_path(), ()),
-            daemon=True)
+        process = ctx.Process(target=_players_on, args=(
+            first, cores, child, servers[0].url, players, 24 * 3600.0,
+            builtin_motion_path(), ()), daemon=True)
         process.start()
         pipe.send("go")
+        if len(cores) >= 2:
+            os.sched_setaffinity(0, {cores[0]})
         try:
             yield [s.url for s in servers]
         finally:
+            if cores:
+                os.sched_setaffinity(0, cores)
             process.kill()
             process.join(10)
 
@@ -249,7 +268,7 @@ def capacity(processes: int, players: int, start: int, seconds: float, budget_ms
     steps: list[Step] = []
     with _service(processes, players) as urls:
         low, high = 0, None
-        n = max(start, processes)
+        n = max(start, PROBES * processes)
         while True:
             step = _step(urls, n, seconds, budget_ms)
             steps.append(step)

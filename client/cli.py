@@ -478,7 +478,7 @@ def _parser() -> argparse.ArgumentParser:
                     help="spectators not to go beyond (default: 20000)")
     bf.add_argument("--budget-ms", type=arg.positive_float, default=10.0,
                     help="p99 capture to spectator each process's probe must keep")
-    bf.add_argument("--seconds", type=arg.positive_float, default=3.0,
+    bf.add_argument("--seconds", type=arg.positive_float, default=4.0,
                     help="length of each step's measurement")
     bf.add_argument("--json", action="store_true", help="print one JSON document")
     bu = bsub.add_parser("startup", help="seconds the first commands take after set-up "

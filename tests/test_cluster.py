@@ -383,14 +383,14 @@ def test_bench_fanout_measures_each_process_count(
     probe's latency measured and nothing dropped, a line per step as it goes."""
     if shutil.which("redis-server") is None:
         pytest.skip("no redis-server here (apt-get install redis-server)")
-    assert main(["bench", "fanout", "--processes", "1,2", "--start", "4", "--max", "6",
+    assert main(["bench", "fanout", "--processes", "1,2", "--start", "6", "--max", "9",
                  "--seconds", "1", "--budget-ms", "1000", "--json"]) == 0
     out = capsys.readouterr()
     doc = json.loads(out.out)
     assert [r["processes"] for r in doc["results"]] == [1, 2]
     for r in doc["results"]:
-        assert r["spectators"] == 6
-        assert [s["spectators"] for s in r["steps"]] == [4, 6]
+        assert r["spectators"] == 9
+        assert [s["spectators"] for s in r["steps"]] == [6, 9]
         for step in r["steps"]:
             assert len(step["capture_to_spectator_p99_ms"]) == r["processes"]
             assert all(0 < p < 1000 for p in step["capture_to_spectator_p99_ms"])
