@@ -4,8 +4,8 @@ several serve together through Redis (``serve --redis``).
 For each number of processes, a room of 4 players (90 Hz) is solved on the first and
 the spectators are spread evenly over all; the count grows (x1.5, then halving the gap
 between the last count that held and the first that did not) until a process no longer
-holds: its probe spectator's p99 capture-to-spectator is over the budget, or it dropped
-more than 1% of the frames it offered (latest wins: its sockets fell behind).
+holds: its probes' p99 capture-to-spectator is over the budget, or it dropped more than
+1% of the frames it offered (latest wins: its sockets fell behind), twice running.
 
 Each process runs on a core of its own, and so does the load of its spectators, at a
 lower priority: every process pays for its own load alike, and a second process brings a
@@ -273,6 +273,10 @@ def capacity(processes: int, players: int, start: int, seconds: float, budget_ms
             step = _step(urls, n, seconds, budget_ms)
             steps.append(step)
             progress(step)
+            if not step.held:  # a count fails twice running: a shared machine's hiccup
+                step = _step(urls, n, seconds, budget_ms)  # failed single steps at random
+                steps.append(step)
+                progress(step)
             if step.held:
                 low = n
             else:
