@@ -101,8 +101,8 @@ def test_device_roles_are_the_solver_devices() -> None:
 
 def test_every_message_type_is_registered_once() -> None:
     assert sorted(MESSAGE_TYPES) == ["avatar_batch", "avatar_roster", "calibrate", "error",
-                                     "hello", "leave", "ping", "pong", "tracker_frame",
-                                     "viewer_report", "welcome"]
+                                     "hello", "leave", "ping", "pong", "redirect",
+                                     "tracker_frame", "viewer_report", "welcome"]
 
 
 # --------------------------------------------------------------------------- round trips
