@@ -24,7 +24,6 @@ import contextlib
 import math
 import multiprocessing as mp
 import os
-import time
 import urllib.request
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -32,7 +31,6 @@ from functools import partial
 from multiprocessing.connection import Connection
 from typing import Any
 
-import numpy as np
 from prometheus_client.parser import text_string_to_metric_families
 from websockets.asyncio.client import connect
 
@@ -182,44 +180,17 @@ class Step:
                 "dropped": [round(d, 4) for d in self.dropped], "held": self.held}
 
 
-def _probe_process(pipe: Connection, url: str, core: str, cores: tuple[int, ...]) -> None:
-    """The probes of one server, on its core: for each step, PROBES real spectators join
-    (after the load: the last of the fan-out) for the seconds asked, and their capture
-    to spectator samples go back."""
-    from posecast.server.app import install_fast_loop
-
-    pin_to_cores(core, cores)
-    install_fast_loop()
-
-    async def step(seconds: float) -> list[float]:
-        probes = [Spectator(url, ROOM, f"probe {j + 1}") for j in range(PROBES)]
-        stats = await asyncio.gather(*(p.run(seconds=seconds) for p in probes))
-        return LatencyRecorder.merged(s.latency for s in stats).samples(
-            "capture_to_spectator").tolist()
-
-    while True:
-        seconds = pipe.recv()
-        if seconds is None:
-            return
-        try:
-            pipe.send(asyncio.run(step(seconds)))
-        except Exception as err:  # a probe that could not join: the step says why
-            pipe.send(str(err))
-
-
-def _measure(probes: list[Connection], urls: list[str], seconds: float
-             ) -> tuple[list[float], list[float]]:
-    time.sleep(SETTLE_S)
+async def _measure(urls: list[str], seconds: float) -> tuple[list[float], list[float]]:
+    probes = [[Spectator(url, ROOM, f"probe {k + 1}.{j + 1}") for j in range(PROBES)]
+              for k, url in enumerate(urls)]
     before = [_scrape(u) for u in urls]
-    for pipe in probes:
-        pipe.send(seconds)
-    samples = [pipe.recv() for pipe in probes]
+    stats = await asyncio.gather(*(asyncio.gather(*(p.run(seconds=seconds) for p in ps))
+                                   for ps in probes))
     after = [_scrape(u) for u in urls]
     p99 = []
-    for got in samples:
-        if isinstance(got, str):
-            raise RuntimeError(f"a probe spectator failed: {got}")
-        p99.append(float(np.percentile(got, 99)) * 1e3 if got else math.inf)
+    for per_process in stats:  # the probes of a process together: 3x the samples
+        samples = LatencyRecorder.merged(s.latency for s in per_process).summary()
+        p99.append(samples.get("capture_to_spectator", {}).get("p99", math.inf))
     dropped = []
     for b, a in zip(before, after, strict=True):
         d = {k: a.get(k, 0.0) - b.get(k, 0.0) for k in a}
@@ -230,8 +201,7 @@ def _measure(probes: list[Connection], urls: list[str], seconds: float
     return p99, dropped
 
 
-def _step(service: Service, spectators: int, seconds: float, budget_ms: float) -> Step:
-    urls = service.urls
+def _step(urls: list[str], spectators: int, seconds: float, budget_ms: float) -> Step:
     load = max(0, spectators - PROBES * len(urls))  # the probes are spectators too
     with _load(urls, load) as pipes:
         for pipe in pipes:
@@ -240,7 +210,7 @@ def _step(service: Service, spectators: int, seconds: float, budget_ms: float) -
             _, _, why = pipe.recv()
             if why:
                 raise RuntimeError(f"not every spectator could join: {why}")
-        p99, dropped = _measure(service.probes, urls, seconds)
+        p99, dropped = asyncio.run(_settled_measure(urls, seconds))
         for pipe in pipes:
             pipe.send("stop")
             pipe.recv()
@@ -248,10 +218,10 @@ def _step(service: Service, spectators: int, seconds: float, budget_ms: float) -
     return Step(len(urls), spectators, p99, dropped, held)
 
 
-@dataclass
-class Service:
-    urls: list[str]  # the server processes
-    probes: list[Connection]  # each one's probe process
+async def _settled_measure(urls: list[str], seconds: float) -> tuple[list[float],
+                                                                     list[float]]:
+    await asyncio.sleep(SETTLE_S)
+    return await _measure(urls, seconds)
 
 
 def _players_on(core: str, cores: tuple[int, ...], *args: Any) -> None:
@@ -260,60 +230,51 @@ def _players_on(core: str, cores: tuple[int, ...], *args: Any) -> None:
 
 
 @contextlib.contextmanager
-def _service(processes: int, players: int) -> Iterator[Service]:
+def _service(processes: int, players: int) -> Iterator[list[str]]:
     """Redis, ``processes`` servers each pinned to a core of its own (as far as the
-    machine has them) with its probes, and the players streaming into the first. The
-    players and Redis share the first server's core whatever the number of processes,
-    and each server's probes are on its own core: with them all on the second core, one
-    process had that core for them, and two held 0.95-2.25x one."""
+    machine has them), and the players streaming into the first. The players, Redis and
+    this process (the probes) share the first server's core whatever the number of
+    processes: with them on a core of their own, one process had the machine's second
+    core for its load's helpers, and two processes held no more than one."""
     cores = demo_cores()
     first = "core:0"
-    ctx = mp.get_context("spawn")
     with contextlib.ExitStack() as stack:
         redis_url = stack.enter_context(RedisProcess(
             setup=partial(pin_to_cores, first, cores))).url
         servers = [stack.enter_context(EmbeddedServer(
             cores=cores, redis_url=redis_url, role=f"core:{k}", limits=LIMITS))
             for k in range(processes)]
+        ctx = mp.get_context("spawn")
         pipe, child = ctx.Pipe()
-        players_process = ctx.Process(target=_players_on, args=(
+        process = ctx.Process(target=_players_on, args=(
             first, cores, child, servers[0].url, players, 24 * 3600.0,
             builtin_motion_path(), ()), daemon=True)
-        players_process.start()
+        process.start()
         pipe.send("go")
-        probes, probe_processes = [], []
-        for k, server in enumerate(servers):
-            mine, theirs = ctx.Pipe()
-            process = ctx.Process(target=_probe_process, args=(
-                theirs, server.url, f"core:{k}", cores), daemon=True)
-            process.start()
-            probes.append(mine)
-            probe_processes.append(process)
+        if len(cores) >= 2:
+            os.sched_setaffinity(0, {cores[0]})
         try:
-            yield Service([s.url for s in servers], probes)
+            yield [s.url for s in servers]
         finally:
-            for mine in probes:
-                with contextlib.suppress(OSError):
-                    mine.send(None)
-            for process in [*probe_processes, players_process]:
-                process.join(5)
-                if process.is_alive():
-                    process.kill()
+            if cores:
+                os.sched_setaffinity(0, cores)
+            process.kill()
+            process.join(10)
 
 
 def capacity(processes: int, players: int, start: int, seconds: float, budget_ms: float,
              progress: Callable[[Step], None], max_spectators: int) -> list[Step]:
     """The steps of one number of processes, from ``start`` spectators up."""
     steps: list[Step] = []
-    with _service(processes, players) as service:
+    with _service(processes, players) as urls:
         low, high = 0, None
         n = max(start, PROBES * processes)
         while True:
-            step = _step(service, n, seconds, budget_ms)
+            step = _step(urls, n, seconds, budget_ms)
             steps.append(step)
             progress(step)
             if not step.held:  # a count fails twice running: a shared machine's hiccup
-                step = _step(service, n, seconds, budget_ms)  # failed single steps at random
+                step = _step(urls, n, seconds, budget_ms)  # failed single steps at random
                 steps.append(step)
                 progress(step)
             if step.held:
