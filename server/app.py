@@ -174,6 +174,9 @@ class Session:
         """An empty room leaves this process: its key in Redis, or its channel, goes."""
         if self.rooms.get(room.name) is room:
             del self.rooms[room.name]
+            lock = self._claiming.get(room.name)
+            if lock is not None and not lock.locked():  # one per room this process has
+                del self._claiming[room.name]
             if self.cluster is not None:
                 if room.relayed:
                     self._later(self.cluster.unwatch(room.name))
@@ -196,16 +199,15 @@ class Session:
             if room is not None and not room.relayed and name in self.cluster.owned:
                 return None
             url = await self.cluster.claim(name)
-            if url is not None:
-                return url
-            room = self.room(name)
-            if room.relayed:  # its spectators stay; the mirror makes way for the avatars
-                room.relayed = False
-                await self.cluster.unwatch(name)
-            await self._restore(room)
-            if not lock.locked() or len(self._claiming) > 4 * len(self.rooms) + 16:
-                self._claiming = {k: v for k, v in self._claiming.items() if v.locked()}
-            return None
+            if url is None:
+                room = self.room(name)
+                if room.relayed:  # its spectators stay; the mirror makes way for avatars
+                    room.relayed = False
+                    await self.cluster.unwatch(name)
+                await self._restore(room)
+        if url is not None and name not in self.rooms and not lock.locked():
+            self._claiming.pop(name, None)  # clients name rooms: this must not grow
+        return url
 
     async def _restore(self, room: Room) -> None:
         """The room's avatars as Redis has them, calibrated from their T-poses as by the
