@@ -34,6 +34,19 @@ def shared_data_path(path: str) -> Path:
     return full
 
 
+@pytest.fixture(scope="session")
+def walk_vive(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Half a second of the built-in CMU walk as a Vive recording (frame 0 the T-pose),
+    made by posecast's own code: the paper authors' recordings stay in ../shared."""
+    from posecast.client.builtin import builtin_motion_path
+    from posecast.client.sources.bvh_source import tracker_recording
+    from posecast.solver.readers.vive import format_vive
+
+    path = tmp_path_factory.mktemp("vive") / "walk_vive.csv"
+    path.write_text(format_vive(tracker_recording(builtin_motion_path(), seconds=0.5)))
+    return path
+
+
 @pytest.fixture
 def shared_data() -> Callable[[str], Path]:
     """``shared_data("vive/kicking.csv")``: the path of a real data file, or a skip."""

@@ -78,8 +78,8 @@ def _cli(*args: str) -> subprocess.CompletedProcess[str]:
                           timeout=900)
 
 
-def test_cross_validate_needs_two_vive_recordings() -> None:
-    walk = str(ROOT / "client" / "assets" / "example_walk_vive.csv")
+def test_cross_validate_needs_two_vive_recordings(walk_vive: Path) -> None:
+    walk = str(walk_vive)
     bvh = str(ROOT / "client" / "assets" / "cmu_02_01_walk.bvh")
     for args in ((walk,), (walk, bvh), (walk, walk, "--delay-ms", "50")):
         out = _cli(*args)

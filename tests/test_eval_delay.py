@@ -21,8 +21,6 @@ from posecast.solver.prediction import DEFAULT
 from posecast.solver.readers.bvh import read_bvh
 from posecast.solver.readers.vive import read_vive
 
-ASSETS = Path(__file__).resolve().parents[1] / "client" / "assets"
-
 
 def run_json(capsys: pytest.CaptureFixture[str], *argv: str) -> dict:
     assert main(["eval", *argv, "--json"]) == 0
@@ -82,9 +80,9 @@ def test_target_on_the_real_recordings(shared_data: Callable[[str], Path]) -> No
         assert ahead - e0 <= 0.4 * (late - e0), (kind, e0, late, ahead)
 
 
-def test_bench_prediction_table(capsys: pytest.CaptureFixture[str]) -> None:
-    """Two small recordings shipped with the project: the table and JSON it prints."""
-    files = [ASSETS / "example_walk_vive.csv", builtin_motion_path()]
+def test_bench_prediction_table(capsys: pytest.CaptureFixture[str], walk_vive: Path) -> None:
+    """Two small recordings of the built-in walk: the table and JSON it prints."""
+    files = [walk_vive, builtin_motion_path()]
     doc = bench_prediction(files, progress=False)
     rows = doc["rows"]
     assert isinstance(rows, list)

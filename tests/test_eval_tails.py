@@ -14,7 +14,6 @@ from posecast.solver.evaluation import tracked_chain
 
 ROOT = Path(__file__).resolve().parents[1]
 WALK_BVH = ROOT / "client" / "assets" / "cmu_02_01_walk.bvh"
-WALK_VIVE = ROOT / "client" / "assets" / "example_walk_vive.csv"
 
 
 def test_the_tracked_chain_runs_from_the_root_to_each_tracker() -> None:
@@ -31,8 +30,8 @@ def _eval_json(*files: Path) -> dict[str, object]:
     return doc
 
 
-def test_eval_json_has_p99_per_device_and_tracked_rotations() -> None:
-    doc = _eval_json(WALK_VIVE, WALK_BVH)
+def test_eval_json_has_p99_per_device_and_tracked_rotations(walk_vive: Path) -> None:
+    doc = _eval_json(walk_vive, WALK_BVH)
     vive, bvh = doc["clips"]  # type: ignore[misc]
     for clip in (vive, bvh):
         # every scored point has its p99, no smaller than its mean

@@ -1,6 +1,6 @@
-"""The example Vive recording shipped in client/assets: made by posecast's own code from
-the built-in CMU clip (so it carries that clip's credit and no one else's data), in the
-format of the paper authors' files, and read back by the project's reader."""
+"""A Vive recording made by posecast's own code from the built-in CMU clip (the tests'
+``walk_vive``), in the format of the paper authors' files, read back by the project's
+reader."""
 
 from __future__ import annotations
 
@@ -8,16 +8,14 @@ from pathlib import Path
 
 import numpy as np
 
-from posecast.client.builtin import ASSETS, builtin_motion_path
+from posecast.client.builtin import builtin_motion_path
 from posecast.client.sources.bvh_source import tracker_recording
 from posecast.solver.motion import ViveRecording
 from posecast.solver.readers.vive import format_vive, read_vive
 
-EXAMPLE = ASSETS / "example_walk_vive.csv"
 
-
-def test_the_example_is_the_built_in_clip_as_trackers() -> None:
-    shipped = read_vive(EXAMPLE)
+def test_the_built_in_clip_as_trackers_reads_back_as_made(walk_vive: Path) -> None:
+    shipped = read_vive(walk_vive)
     made = tracker_recording(builtin_motion_path(), seconds=0.5)
     assert shipped.num_frames == made.num_frames == 46
     order = [made.device(d) for d in shipped.devices]
@@ -28,8 +26,8 @@ def test_the_example_is_the_built_in_clip_as_trackers() -> None:
     assert np.all(q > 1 - 1e-9)
 
 
-def test_frame_zero_is_a_t_pose() -> None:
-    rec = read_vive(EXAMPLE)
+def test_frame_zero_is_a_t_pose(walk_vive: Path) -> None:
+    rec = read_vive(walk_vive)
     left, right = (rec.positions[0, rec.device(d)] for d in ("left_hand", "right_hand"))
     hip = rec.positions[0, rec.device("hip")]
     assert np.linalg.norm(left - right) > 1.2  # arms stretched sideways

@@ -9,10 +9,11 @@ import urllib.error
 import urllib.request
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import REPO_ROOT, serving
+from conftest import serving
 from prometheus_client.parser import text_string_to_metric_families
 from websockets.asyncio.client import ClientConnection, connect
 
@@ -37,14 +38,13 @@ from posecast.solver.motion import ViveRecording
 from posecast.solver.readers.vive import read_vive
 
 TIMEOUT = 10.0  # seconds for any one reply: generous, the machine may be loaded
-WALK = REPO_ROOT / "client" / "assets" / "example_walk_vive.csv"  # frame 0: a T-pose
 
 Samples = dict[tuple[str, tuple[tuple[str, str], ...]], float]
 
 
 @pytest.fixture(scope="module")
-def walk() -> ViveRecording:
-    return read_vive(WALK)
+def walk(walk_vive: Path) -> ViveRecording:
+    return read_vive(walk_vive)  # frame 0: a T-pose
 
 
 @pytest.fixture(scope="module")
