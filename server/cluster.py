@@ -316,11 +316,6 @@ class Cluster:
                 log.warning("room %r: avatar %r in Redis skipped: %s", room, field, err)
         return sorted(records, key=lambda r: r.avatar_id)
 
-    async def flush(self) -> None:
-        """Wait until every queued command reached Redis (or Redis is lost)."""
-        with contextlib.suppress(RedisError, OSError):
-            await self._flush()
-
     # ------------------------------------------------------------------ fan-out
     def publish(self, room: str, kind: str, payload: bytes) -> None:
         """A batch or roster of an owned room to the processes watching it; never waits

@@ -91,6 +91,16 @@ class SessionCollector(Collector):
         yield GaugeMetricFamily("posecast_uptime_seconds", "Seconds since the session "
                                 "started.", value=now() - s.started)
 
+        if s.cluster is not None:  # serve --redis
+            yield GaugeMetricFamily("posecast_redis_up", "1 while the link to Redis works "
+                                    "(serve --redis).", value=int(s.cluster.up))
+            events = CounterMetricFamily(
+                "posecast_cluster_events", "serve --redis: envelopes published and relayed, "
+                "dropped while Redis was lost, rooms taken over, players redirected, Redis "
+                "lost.", labels=["event"])
+            for event, n in vars(s.cluster.stats).items():
+                events.add_metric([event], n)
+            yield events
         yield CounterMetricFamily("posecast_viewer_reports", "Reports of presentation "
                                   "times taken from spectators (ViewerReport).",
                                   value=m.viewer_reports)

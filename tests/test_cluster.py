@@ -12,11 +12,13 @@ import shutil
 import subprocess
 import sys
 import time
+import urllib.request
 from collections.abc import Iterator
 
 import msgpack
 import numpy as np
 import pytest
+from prometheus_client.parser import text_string_to_metric_families
 from pydantic import ValidationError
 
 from posecast.client.builtin import builtin_motion_path
@@ -90,6 +92,11 @@ class Keeping(Spectator):
             self.arrived[frame.avatar_id] = time.monotonic()
 
 
+def _get(url: str) -> str:
+    with urllib.request.urlopen(url, timeout=TIMEOUT) as reply:
+        return str(reply.read().decode())
+
+
 async def until(condition: object, what: str) -> None:
     t_end = time.monotonic() + TIMEOUT
     while not condition():  # type: ignore[operator]
@@ -142,6 +149,13 @@ def test_a_spectator_on_another_process_receives_every_frame_the_owner_solved(
                 np.testing.assert_array_equal(far.frames[key], here.frames[key])
             relay = b.session.metrics.relay_latency
             assert relay.count("relay") > 0
+            text = await asyncio.to_thread(_get, b.url.replace("ws://", "http://")
+                                           + "/metrics")
+            scraped = {(m.name, tuple(sorted(x.labels.items()))): x.value
+                       for m in text_string_to_metric_families(text) for x in m.samples}
+            assert scraped[("posecast_redis_up", ())] == 1
+            assert scraped[("posecast_cluster_events", (("event", "relayed"),))] \
+                == b.cluster.stats.relayed > 0
 
     asyncio.run(main())
 
