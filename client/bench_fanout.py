@@ -213,7 +213,9 @@ def _step(urls: list[str], spectators: int, seconds: float, budget_ms: float) ->
         p99, dropped = asyncio.run(_settled_measure(urls, seconds))
         for pipe in pipes:
             pipe.send("stop")
-            pipe.recv()
+            received = pipe.recv()
+            if received and min(received) == 0:  # a socket the server no longer fed
+                raise RuntimeError("a load spectator received nothing during the step")
     held = all(p <= budget_ms for p in p99) and all(d <= MAX_DROPPED for d in dropped)
     return Step(len(urls), spectators, p99, dropped, held)
 

@@ -21,18 +21,13 @@ import pytest
 from posecast.client.builtin import builtin_motion_path
 from posecast.client.connection import Reconnect, SessionError
 from posecast.client.player import Player
+from posecast.client.redis_process import free_port
 from posecast.client.sources import open_source
 from posecast.client.spectator import Spectator
 from posecast.server.app import Session, run_server
 
 TIMEOUT = 60.0  # generous: conditions are awaited, and a loaded machine starts processes slowly
 QUICK = {"first_s": 0.05, "max_s": 0.2}  # backoff for tests: the figures, not the waits
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 class Restartable:
