@@ -72,6 +72,8 @@ def _secret_file(text: str) -> Path:
 # client.bench_hostile.ATTACKS, without importing it (and websockets) for every command
 _HOSTILE_ATTACKS = ("calibrate-flood", "bad-messages", "big-frames", "poison-time",
                     "poison-calibration")
+# client.bench_fanout.BUDGET_MS, likewise
+_FANOUT_BUDGET_MS = 25.0
 
 
 def _origins(text: str) -> list[str]:
@@ -476,8 +478,9 @@ def _parser() -> argparse.ArgumentParser:
                          "then halving the gap)")
     bf.add_argument("--max", type=arg.positive_int, default=20000,
                     help="spectators not to go beyond (default: 20000)")
-    bf.add_argument("--budget-ms", type=arg.positive_float, default=10.0,
-                    help="p99 capture to spectator each process's probe must keep")
+    bf.add_argument("--budget-ms", type=arg.positive_float, default=_FANOUT_BUDGET_MS,
+                    help="p99 capture to spectator each process must keep besides losing "
+                         f"at most 1%% of the frames (default: {_FANOUT_BUDGET_MS:g})")
     bf.add_argument("--seconds", type=arg.positive_float, default=4.0,
                     help="length of each step's measurement")
     bf.add_argument("--json", action="store_true", help="print one JSON document")
