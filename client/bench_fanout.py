@@ -1,9 +1,10 @@
 """`posecast bench fanout`: how many spectators one server process serves, and how many
 several serve together through Redis (``serve --redis``).
 
-For each number of processes, a room of 4 players (90 Hz) is solved on the first and
-the spectators are spread evenly over all; the count grows (x1.5, then halving the gap
-between the last count that held and the first that did not) until a process saturates:
+A room of 4 players (90 Hz) is solved on the first process. For each number of
+processes K, the spectators are spread evenly over the first K, and the count grows (x1.5,
+then halving the gap between the last count that held and the first that did not; the
+numbers of processes take their steps in turn, on one service) until a process saturates:
 its spectators no longer get the players' frames, more than 1% of them lost (superseded
 before a solve, or replaced in an outbox because its sockets fell behind; latest wins, so
 a saturated process loses frames rather than queueing them), twice running. Each step
@@ -31,7 +32,7 @@ import time
 import urllib.request
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import partial
 from multiprocessing.connection import Connection
 from typing import Any
@@ -332,15 +333,15 @@ class Service:
 @contextlib.contextmanager
 def _service(processes: int, players: int) -> Iterator[Service]:
     """Redis, ``processes`` servers each pinned to a core of its own (as far as the
-    machine has them), and the players streaming into the first. The players, Redis and
-    this process share the first server's core whatever the number of processes: with
-    them on a core of their own, one process had the machine's second core for its
-    load's helpers, and two processes held no more than one."""
+    machine has them), and the players streaming into the first. The players and this
+    process share the first server's core, Redis the last one's: the far processes'
+    relay then does not wait for the owner's fan-out to get the core (the owner's
+    spectators do, as in any number of processes)."""
     cores = demo_cores()
     first = "core:0"
     with contextlib.ExitStack() as stack:
         redis_url = stack.enter_context(RedisProcess(
-            setup=partial(pin_to_cores, first, cores))).url
+            setup=partial(pin_to_cores, f"core:{processes - 1}", cores))).url
         servers = [stack.enter_context(EmbeddedServer(
             cores=cores, redis_url=redis_url, role=f"core:{k}", limits=LIMITS))
             for k in range(processes)]
@@ -362,35 +363,60 @@ def _service(processes: int, players: int) -> Iterator[Service]:
             process.join(10)
 
 
-def capacity(processes: int, players: int, start: int, seconds: float,
-             budget_ms: float | None, progress: Callable[[Step], None],
-             max_spectators: int) -> list[Step]:
-    """The steps of one number of processes, from ``start`` spectators up."""
-    steps: list[Step] = []
-    with _service(processes, players) as service:
-        low, high = 0, None
-        n = max(start, PROBES * processes)
-        while True:
-            step = _step(service, n, seconds, budget_ms)
-            steps.append(step)
-            progress(step)
-            if not step.held:  # a count fails twice running: a shared machine's hiccup
-                step = _step(service, n, seconds, budget_ms)  # failed single steps at random
-                steps.append(step)
+@dataclass
+class _Search:
+    """The counts to try for one number of processes: x1.5 from the start until a count
+    fails, then halving the gap between the last count that held and the first that did
+    not, to within ~3%. A count fails when it fails twice running: a shared machine's
+    hiccup failed single steps at random."""
+
+    processes: int
+    n: int
+    max_spectators: int
+    low: int = 0
+    high: int | None = None
+    failed_once: bool = False
+    done: bool = False
+    steps: list[Step] = field(default_factory=list)
+
+    def record(self, step: Step) -> None:
+        self.steps.append(step)
+        if not step.held and not self.failed_once:
+            self.failed_once = True  # the same count again, at its next turn
+            return
+        self.failed_once = False
+        if step.held:
+            self.low = self.n
+        else:
+            self.high = self.n
+        if self.high is None:
+            if self.n >= self.max_spectators:
+                self.done = True
+            self.n = min(self.max_spectators, math.ceil(self.n * 1.5))
+        elif self.high - self.low <= max(self.processes, self.high // 32):
+            self.done = True
+        else:
+            self.n = (self.low + self.high) // 2
+
+
+def capacities(process_counts: list[int], players: int, start: int, seconds: float,
+               budget_ms: float | None, progress: Callable[[Step], None],
+               max_spectators: int) -> list[list[Step]]:
+    """The steps of each number of processes, taken in turn on one service of as many
+    processes as the largest number (K processes: the first K serve the spectators, the
+    others have none), so that a change in the machine's speed during the run (a shared
+    VM's neighbours) falls on every number alike and not on the ratio between them."""
+    searches = [_Search(k, max(start, PROBES * k), max_spectators) for k in process_counts]
+    with _service(max(process_counts), players) as service:
+        while not all(s.done for s in searches):
+            for search in searches:
+                if search.done:
+                    continue
+                first = Service(service.urls[:search.processes], service.cores)
+                step = _step(first, search.n, seconds, budget_ms)
+                search.record(step)
                 progress(step)
-            if step.held:
-                low = n
-            else:
-                high = n
-            if high is None:
-                if n >= max_spectators:
-                    break
-                n = min(max_spectators, math.ceil(n * 1.5))
-            elif high - low <= max(processes, high // 32):  # within ~3%
-                break
-            else:
-                n = (low + high) // 2
-    return steps
+    return [s.steps for s in searches]
 
 
 def held_step(steps: list[Step]) -> Step | None:
@@ -413,9 +439,9 @@ def bench_fanout(process_counts: list[int], players: int = 4, start: int = 200,
                  progress: Callable[[Step], None] = lambda s: None) -> dict[str, object]:
     _open_files_for_sockets()
     results: list[dict[str, Any]] = []
-    for processes in process_counts:
-        steps = capacity(processes, players, start, seconds, budget_ms, progress,
-                         max_spectators)
+    searched = capacities(process_counts, players, start, seconds, budget_ms, progress,
+                          max_spectators)
+    for processes, steps in zip(process_counts, searched, strict=True):
         best = held_step(steps)
         results.append({
             "processes": processes, "spectators": best.spectators if best else 0,

@@ -22,7 +22,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from pydantic import ValidationError
 
 from posecast.client import cli
-from posecast.client.bench_fanout import BUDGET_MS, MAX_LOST
+from posecast.client.bench_fanout import BUDGET_MS, MAX_LOST, Step, _Search, held_step
 from posecast.client.builtin import builtin_motion_path
 from posecast.client.cli import main
 from posecast.client.connection import Reconnect
@@ -423,3 +423,23 @@ def test_bench_fanout_measures_each_process_count(
 
 def test_bench_fanout_budget_is_the_cli_default() -> None:
     assert cli._FANOUT_BUDGET_MS == BUDGET_MS
+
+
+def test_bench_fanout_search_needs_a_count_to_fail_twice_and_stops_within_3_percent(
+        ) -> None:
+    """The search's counts for a process that holds up to 700 spectators, with one
+    stray failure at 300: it tries 300 again, grows x1.5 until a count fails twice, then
+    halves the gap until it is within 1/32 of the first count that failed."""
+    search = _Search(processes=1, n=200, max_spectators=20000)
+    stray = {300}
+    tried = []
+    while not search.done:
+        n = search.n
+        tried.append(n)
+        held = n <= 700 and not (n in stray and tried.count(n) == 1)
+        search.record(Step(1, n, [1.0], [0.0 if held else 0.05], held))
+    assert tried[:7] == [200, 300, 300, 450, 675, 1013, 1013]
+    assert search.low <= 700 < search.high
+    assert search.high - search.low <= search.high // 32
+    assert held_step(search.steps) is not None
+    assert held_step(search.steps).spectators == search.low  # type: ignore[union-attr]
