@@ -9,7 +9,8 @@ its spectators no longer get the players' frames, more than 1% of them lost (sup
 before a solve, or replaced in an outbox because its sockets fell behind; latest wins, so
 a saturated process loses frames rather than queueing them), twice running. Each step
 reports the p99 capture-to-spectator of every process, which must stay within a budget
-(25 ms, about two headset frames; ``--budget-ms``).
+(25 ms, about two headset frames; ``--budget-ms``). ``--repeat`` runs it all again and
+reports medians.
 
 Each process runs on a core of its own, with its spectators: the load, at a lower
 priority, and its probes. The load is spectators that count the bytes they receive and
@@ -28,6 +29,7 @@ import math
 import multiprocessing as mp
 import os
 import resource
+import statistics
 import time
 import urllib.request
 from collections.abc import Callable, Iterator
@@ -435,40 +437,59 @@ def _open_files_for_sockets() -> None:
 
 def bench_fanout(process_counts: list[int], players: int = 4, start: int = 200,
                  seconds: float = 4.0, budget_ms: float | None = BUDGET_MS,
-                 max_spectators: int = 20000,
+                 max_spectators: int = 20000, repeat: int = 1,
                  progress: Callable[[Step], None] = lambda s: None) -> dict[str, object]:
+    """``repeat`` whole runs: each number of processes gets the median of its runs'
+    counts, and the ratio is the median of each run's own ratio (a run's numbers of
+    processes measured in the same minutes). One run's count swings by a third on a
+    shared 2-core VM; a median of several does not follow one bad run."""
     _open_files_for_sockets()
+    runs = [capacities(process_counts, players, start, seconds, budget_ms, progress,
+                       max_spectators) for _ in range(repeat)]
+    counts = [[_held_count(steps) for steps in run] for run in runs]  # [run][processes]
+    ratios = [[round(c / run[0], 2) if run[0] else None for c in run] for run in counts]
     results: list[dict[str, Any]] = []
-    searched = capacities(process_counts, players, start, seconds, budget_ms, progress,
-                          max_spectators)
-    for processes, steps in zip(process_counts, searched, strict=True):
-        best = held_step(steps)
+    for k, processes in enumerate(process_counts):
+        per_run = [run[k] for run in counts]
+        median = statistics.median_low(per_run)
+        best = held_step(runs[per_run.index(median)][k])  # of the median run
+        run_ratios = [x for r in ratios if (x := r[k]) is not None]
         results.append({
-            "processes": processes, "spectators": best.spectators if best else 0,
+            "processes": processes, "spectators": median, "runs": per_run,
+            "ratio": round(statistics.median(run_ratios), 2) if run_ratios else None,
+            "ratios": [r[k] for r in ratios],
             "capture_to_spectator_p99_ms": ([round(p, 3) for p in best.p99_ms]
                                             if best else None),
-            "steps": [s.as_json() for s in steps]})
-    base = results[0]["spectators"] if results else 0
-    for r in results:
-        r["ratio"] = round(r["spectators"] / base, 2) if base else None
+            "steps": [[s.as_json() for s in run[k]] for run in runs]})
     return {"players": players, "budget_ms": budget_ms, "max_lost": MAX_LOST,
-            "results": results}
+            "repeat": repeat, "results": results}
+
+
+def _held_count(steps: list[Step]) -> int:
+    best = held_step(steps)
+    return best.spectators if best else 0
 
 
 def format_fanout_table(doc: dict[str, Any]) -> str:
     budget = doc["budget_ms"]
+    runs = doc["repeat"]
     lines = [f"spectators served before a process saturates (its spectators miss more "
              f"than {100 * doc['max_lost']:g}% of the players' frames"
              + (f", or its p99 capture->spectator is over {budget:g} ms" if budget else "")
-             + f"), {doc['players']} players at 90 Hz on process 1:",
+             + f"), {doc['players']} players at 90 Hz on process 1"
+             + (f"; medians of {runs} runs" if runs > 1 else "") + ":",
              f"{'processes':>9}  {'spectators':>10}  {'per process':>11}  {'x one':>6}  "
-             f"{'p99 ms (each process)':>21}"]
+             f"{'p99 ms (each process)':>21}" + ("  runs (x one)" if runs > 1 else "")]
     for r in doc["results"]:
         p99 = r["capture_to_spectator_p99_ms"]
-        lines.append(f"{r['processes']:>9}  {r['spectators']:>10}  "
-                     f"{r['spectators'] // r['processes']:>11}  "
-                     f"{r['ratio'] if r['ratio'] is not None else '-':>6}  "
-                     f"{', '.join(f'{p:.1f}' for p in p99) if p99 else '-':>21}")
+        line = (f"{r['processes']:>9}  {r['spectators']:>10}  "
+                f"{r['spectators'] // r['processes']:>11}  "
+                f"{r['ratio'] if r['ratio'] is not None else '-':>6}  "
+                f"{', '.join(f'{p:.1f}' for p in p99) if p99 else '-':>21}")
+        if runs > 1:
+            line += "  " + ", ".join(f"{c} ({x if x is not None else '-'})"
+                                     for c, x in zip(r["runs"], r["ratios"], strict=True))
+        lines.append(line)
     return "\n".join(lines)
 
 

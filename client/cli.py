@@ -483,6 +483,9 @@ def _parser() -> argparse.ArgumentParser:
                          f"at most 1%% of the frames (default: {_FANOUT_BUDGET_MS:g})")
     bf.add_argument("--seconds", type=arg.positive_float, default=4.0,
                     help="length of each step's measurement")
+    bf.add_argument("--repeat", type=arg.positive_int, default=1,
+                    help="whole runs, reporting each count's median and the median of "
+                         "the runs' ratios (a run takes ~5 min)")
     bf.add_argument("--json", action="store_true", help="print one JSON document")
     bu = bsub.add_parser("startup", help="seconds the first commands take after set-up "
                          "(--version, serve until listening, eval of the built-in clip)")
@@ -722,10 +725,11 @@ def _bench_fanout(args: argparse.Namespace) -> int:
     from posecast.client.bench_fanout import bench_fanout, format_fanout_table, format_step
     from posecast.client.redis_process import RedisMissingError
 
-    try:  # a line per step as it ends: a whole run takes a minute or two
+    try:  # a line per step as it ends: a whole run takes minutes
         doc = bench_fanout(args.processes, args.players, args.start, args.seconds,
-                           args.budget_ms, args.max, progress=lambda step: print(
-                               format_step(step), file=sys.stderr, flush=True))
+                           args.budget_ms, args.max, args.repeat,
+                           progress=lambda step: print(format_step(step), file=sys.stderr,
+                                                       flush=True))
     except RedisMissingError as err:
         return _fail("bench fanout", err)
     except RuntimeError as err:  # spectators that could not join, a server that died

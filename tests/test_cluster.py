@@ -401,24 +401,26 @@ def test_bench_fanout_measures_each_process_count(
     if shutil.which("redis-server") is None:
         pytest.skip("no redis-server here (apt-get install redis-server)")
     assert main(["bench", "fanout", "--processes", "1,2", "--start", "6", "--max", "9",
-                 "--seconds", "3", "--budget-ms", "1000", "--json"]) == 0
+                 "--seconds", "3", "--budget-ms", "1000", "--repeat", "2", "--json"]) == 0
     out = capsys.readouterr()
     doc = json.loads(out.out)
-    assert doc["budget_ms"] == 1000 and doc["max_lost"] == MAX_LOST
+    assert doc["budget_ms"] == 1000 and doc["max_lost"] == MAX_LOST and doc["repeat"] == 2
     assert [r["processes"] for r in doc["results"]] == [1, 2]
     for r in doc["results"]:
-        assert r["spectators"] == 9
-        assert [s["spectators"] for s in r["steps"]] == [6, 9]  # each held at once
-        for step in r["steps"]:
-            assert len(step["capture_to_spectator_p99_ms"]) == r["processes"]
-            assert all(0 < p < 1000 for p in step["capture_to_spectator_p99_ms"])
-            # every spectator got the players' frames (within a batch at each end of
-            # the window: a burst may be open when the counters are read)
-            assert all(0 <= x <= MAX_LOST for x in step["lost"]) and step["held"]
-        assert r["capture_to_spectator_p99_ms"] == r["steps"][-1][
+        assert r["spectators"] == 9 and r["runs"] == [9, 9] and r["ratios"] == [1.0, 1.0]
+        assert len(r["steps"]) == 2  # a list of steps per run
+        for run in r["steps"]:
+            assert [s["spectators"] for s in run] == [6, 9]  # each held at once
+            for step in run:
+                assert len(step["capture_to_spectator_p99_ms"]) == r["processes"]
+                assert all(0 < p < 1000 for p in step["capture_to_spectator_p99_ms"])
+                # every spectator got the players' frames (within a batch at each end
+                # of the window: a burst may be open when the counters are read)
+                assert all(0 <= x <= MAX_LOST for x in step["lost"]) and step["held"]
+        assert r["capture_to_spectator_p99_ms"] == r["steps"][0][-1][
             "capture_to_spectator_p99_ms"]
     assert doc["results"][1]["ratio"] == 1.0
-    assert out.err.count("spectators: p99") == 4
+    assert out.err.count("spectators: p99") == 8
 
 
 def test_bench_fanout_budget_is_the_cli_default() -> None:
