@@ -160,9 +160,8 @@ def _probes_process(pipe: Connection, url: str, core: int | None) -> None:
     """PROBES real spectators of the server at ``url``, on its core: report when they are
     in the room with synced clocks, measure from "go" to "stop", and send back their
     merged p99 capture to spectator (ms)."""
-    pin = {core} if core is not None else None
-    if pin is not None:
-        os.sched_setaffinity(0, pin)
+    if core is not None:
+        os.sched_setaffinity(0, {core})
 
     async def main() -> None:
         probes = [_DemoSpectator(url, f"probe {j + 1}") for j in range(PROBES)]
