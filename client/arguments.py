@@ -25,6 +25,8 @@ from posecast.protocol.validation import (
     MAX_TOKEN_CHARS,
     check_room_name,
 )
+from posecast.solver.tracking.devices import parse_devices
+from posecast.solver.tracking.dropouts import DropoutSpec, parse_dropouts
 
 LOG_LEVELS = ("debug", "info", "warning", "error")
 MAX_OFFSET_M = 100.0  # a shift further than this is a typo (the protocol caps positions)
@@ -249,6 +251,22 @@ def existing_file(text: str) -> Path:
         why = "is a folder, not a file" if path.is_dir() else "no such file"
         raise argparse.ArgumentTypeError(f"{why}: {text!r}")
     return path
+
+
+def devices(text: str) -> tuple[str, ...]:
+    """A tracker set (``solver.tracking.devices.parse_devices``)."""
+    try:
+        return parse_devices(text)
+    except ValueError as err:  # "--devices 'x': expected ..." -> "expected ..."
+        raise argparse.ArgumentTypeError(str(err).split(": ", 1)[1]) from None
+
+
+def dropouts(text: str) -> DropoutSpec:
+    """Simulated tracking losses (``solver.tracking.dropouts.parse_dropouts``)."""
+    try:
+        return parse_dropouts(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err).split(": ", 1)[1]) from None
 
 
 def ca_file(text: str) -> Path:

@@ -24,6 +24,7 @@ from posecast.server.limits import ServerLimits
 from posecast.solver.ik import DEFAULT_SOLVER, SOLVERS, SolverOptions
 from posecast.solver.motion import VIVE_DEVICES  # view --marker's joints
 from posecast.solver.prediction import KINDS as PREDICTORS
+from posecast.solver.tracking.devices import DEFAULT_SET, PRESETS
 
 if TYPE_CHECKING:
     import ssl
@@ -136,6 +137,18 @@ def _parser() -> argparse.ArgumentParser:
     ev.add_argument("--map", type=arg.existing_file, default=None, metavar="FILE",
                     help="BVH joint name -> role (.json or .toml) for rigs whose names and "
                          "shape are not recognised, e.g. {\"Bone_7\": \"forearm_l\"}")
+    ev.add_argument("--devices", type=arg.devices, default=PRESETS[DEFAULT_SET], metavar="SET",
+                    help="the devices that drive the avatar: 3 (head and hands), 4 (+ hip), "
+                         "6 (+ feet), 10 (+ elbows and knees) or a comma list of roles; the "
+                         "others are scored as held out (default: 6)")
+    ev.add_argument("--dropouts", type=arg.dropouts, default=None,
+                    metavar="RATE[,max=S][,seed=N]",
+                    help="lose each driving device but the head at random, RATE times a "
+                         "minute for 0.05 to S s (default 2); adds dropout_frames and "
+                         "dropout_error_mm")
+    ev.add_argument("--naive", action="store_true",
+                    help="the naive baseline for body parts without a device: pelvis "
+                         "straight under the head, legs straight down, feet on the floor")
     ev.add_argument("--cross-validate", action="store_true",
                     help="leave one clip out: score each Vive recording with the calibration "
                          "constants fitted on the others (at least two recordings)")
@@ -215,7 +228,16 @@ def _parser() -> argparse.ArgumentParser:
     pl.add_argument("--no-reconnect", dest="reconnect", action="store_false",
                     help="end when the connection is lost (by default: reconnect with "
                          "backoff and resume the avatar, still calibrated)")
-    pl.add_argument("--devices", type=arg.existing_file, default=None,
+    pl.add_argument("--devices", type=_devices_or_roles_file, default=None, metavar="SET",
+                    help="the devices to stream, of those the source has: 3 (head and "
+                         "hands), 4 (+ hip), 6 (+ feet), 10 (+ elbows and knees) or a "
+                         "comma list of roles (default: every device the source has)")
+    pl.add_argument("--dropouts", type=arg.dropouts, default=None, metavar="RATE[,max=S]"
+                    "[,seed=N]",
+                    help="lose each device but the head at random, RATE times a minute "
+                         "for 0.05 to S s (default 2), as a tracker hidden from the base "
+                         "stations is: to try what the room sees")
+    pl.add_argument("--roles", type=arg.existing_file, default=None, metavar="FILE.toml",
                     help="TOML file mapping tracker serial numbers to roles (openvr)")
     pl.add_argument("--loop", action="store_true", help="replay a recording forever")
     pl.add_argument("--offset", type=arg.offset, default=(0.0, 0.0), metavar="X,Z",
@@ -409,6 +431,15 @@ def _parser() -> argparse.ArgumentParser:
                          "starts (serve --redis; needs redis-server): the players on the "
                          "first, the spectators spread over all; the latency table gains "
                          "the relay hop")
+    dm.add_argument("--devices", action="append", type=_device_set, default=None,
+                    metavar="SET",
+                    help="the players' tracker set: 3 (head and hands), 4 (+ hip), 6 (+ "
+                         "feet, the default), 10 (+ elbows and knees) or a comma list of "
+                         "roles; repeat it for a room of several, taken in turn")
+    dm.add_argument("--dropouts", type=arg.dropouts, default=None,
+                    metavar="RATE[,max=S][,seed=N]",
+                    help="every player loses each device but the head at random, RATE "
+                         "times a minute for 0.05 to S s (default 2)")
     dm.add_argument("--json", action="store_true", help="print one JSON document")
 
     lv = sub.add_parser("latency-video", help="end-to-end latency from a video of the "
@@ -448,6 +479,9 @@ def _parser() -> argparse.ArgumentParser:
                     help="iteration limit per chain (default: the solver's own)")
     bs.add_argument("--seconds", type=arg.positive_float, default=2.0,
                     help="time spent per batch size")
+    bs.add_argument("--devices", type=arg.devices, default=PRESETS[DEFAULT_SET], metavar="SET",
+                    help="the tracker set the avatars are driven by (as for eval); the "
+                         "body model fills the rest")
     bs.add_argument("--json", action="store_true", help="print one JSON document")
     bp = bsub.add_parser("protocol", help="wire sizes, quantization error, codec timings")
     bp.add_argument("--json", action="store_true", help="print one JSON document")
@@ -589,14 +623,19 @@ def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
                                   given=[flag for flag, on in (
                                       ("--delay-ms", args.delay_ms is not None),
                                       ("--predict", args.predict),
-                                      ("--map", args.map is not None)) if on])
+                                      ("--map", args.map is not None),
+                                      ("--dropouts", args.dropouts is not None),
+                                      ("--naive", args.naive),
+                                      ("--devices", args.devices != PRESETS[DEFAULT_SET]))
+                                      if on])
     if args.command == "eval":
         from posecast.client.eval_command import run_eval
 
         return run_eval(args.files, args.solver, args.max_iterations, args.calibration,
                         args.smoothing, args.json, delay_ms=args.delay_ms,
                         predict=args.predict, predictor=args.predictor,
-                        predict_on=args.predict_on, joint_map=args.map)
+                        predict_on=args.predict_on, joint_map=args.map,
+                        devices=args.devices, dropouts=args.dropouts, naive=args.naive)
     if args.command == "token":
         return _token(args)
     if args.command == "latency-video":
@@ -660,7 +699,8 @@ def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
         from posecast.client.bench import bench_solver, format_solver_table
 
         result = bench_solver(args.solver, args.avatars,
-                              SolverOptions(max_iterations=args.max_iterations), args.seconds)
+                              SolverOptions(max_iterations=args.max_iterations), args.seconds,
+                              args.devices)
         print(json.dumps(result) if args.json else format_solver_table(result))
         return 0
     if args.command == "bench" and args.bench == "protocol":
@@ -909,6 +949,19 @@ def _cafile_without_tls(command: str, args: argparse.Namespace) -> int | None:
     return 2
 
 
+def _device_set(text: str) -> str:
+    """A tracker set as given (checked now; ``run_demo`` reads it)."""
+    arg.devices(text)
+    return text
+
+
+def _devices_or_roles_file(text: str) -> tuple[str, ...] | Path:
+    """``play --devices``: a tracker set, or (as before 2026-11) a roles TOML file."""
+    if text.lower().endswith(".toml"):
+        return arg.existing_file(text)
+    return arg.devices(text)
+
+
 def _play(args: argparse.Namespace) -> int:
     from posecast.client.connection import SessionError
     from posecast.client.console import player_summary
@@ -919,10 +972,17 @@ def _play(args: argparse.Namespace) -> int:
 
     if (status := _cafile_without_tls("play", args)) is not None:
         return status
+    if isinstance(args.devices, Path):  # the old spelling of --roles FILE.toml
+        print(f"posecast play: --devices {args.devices} is a roles file: say --roles "
+              f"{args.devices} (--devices now names a tracker set)", file=sys.stderr)
+        args.roles, args.devices = args.devices, None
     try:
-        source = open_source(args.source, args.devices, loop=args.loop, offset=args.offset)
+        source = open_source(args.source, args.roles, loop=args.loop, offset=args.offset)
     except (SourceError, FormatError) as err:
         return _fail("play", err)
+    if args.devices is not None or args.dropouts is not None:
+        from posecast.client.sources.tracker_set import TrackerSetSource
+        source = TrackerSetSource(source, args.devices, args.dropouts)
     recording = None
     if args.record is not None:
         from posecast.client.sources.recording_source import RecordingSource
@@ -1010,7 +1070,8 @@ def _demo(args: argparse.Namespace) -> int:
                           render=args.render, render_mode=args.render_mode,
                           busy=None if args.busy_poll else False,
                           helper=None if args.helper else False, network=args.network,
-                          limits=limits, servers=args.servers)
+                          limits=limits, servers=args.servers, devices=args.devices,
+                          dropouts=args.dropouts)
     except RedisMissingError as err:
         print(f"posecast demo: --servers {args.servers}: {err}", file=sys.stderr)
         return 1

@@ -90,14 +90,21 @@ async def report_player(player: Player, status: StatusLine, source: str) -> None
         t_last, sent_last = t, stats.frames_sent
         errors = sum(stats.errors.values())
         status.progress(f"sent {stats.frames_sent} frames, {rate:.1f} frames/s, "
-                        f"{stats.seconds:.0f} s"
+                        f"{stats.seconds:.0f} s, {len(stats.devices)} devices"
+                        + (f", lost now: {', '.join(stats.lost_now)}" if stats.lost_now
+                           else "")
+                        + (f", losses {sum(stats.losses.values())}" if stats.losses else "")
                         + (f", {errors} server errors (last: {stats.last_error})"
                            if errors else ""), t)
 
 
 def player_summary(stats: PlayerStats) -> str:
     rate = stats.frames_sent / stats.seconds if stats.seconds > 0 else 0.0
+    lost = ", ".join(f"{role} {stats.losses[role]}x ({stats.lost_frames[role]} frames)"
+                     for role in stats.devices if stats.losses[role])
     return (f"sent {stats.frames_sent} frames in {stats.seconds:.1f} s ({rate:.1f} frames/s)"
+            f" from {len(stats.devices)} devices ({', '.join(stats.devices)})"
+            + (f"; lost: {lost}" if lost else "; no device lost")
             + (f"; server errors: {dict(stats.errors)}" if stats.errors else ""))
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import itertools
 import multiprocessing as mp
 import os
@@ -36,7 +37,9 @@ from posecast.client.display_error import (
 from posecast.client.latency import LatencyRecorder
 from posecast.client.network import NetworkSpec, ProxyProcess
 from posecast.client.player import PlayerStats, Ticker, run_player
+from posecast.client.sources.base import PoseSource
 from posecast.client.sources.bvh_source import BvhSource
+from posecast.client.sources.tracker_set import TrackerSetSource
 from posecast.client.spectator import Spectator, SpectatorStats
 from posecast.client.viewer.headless import HeadlessViewerProcess
 from posecast.client.viewer.interpolation import Mode
@@ -44,6 +47,8 @@ from posecast.protocol import AvatarBatch, AvatarRoster, ClockEstimator
 from posecast.server.limits import ServerLimits
 from posecast.solver.readers.gltf import load_makehuman
 from posecast.solver.rig import Rig, build_rig
+from posecast.solver.tracking.devices import DEFAULT_SET, parse_devices
+from posecast.solver.tracking.dropouts import DropoutSpec
 
 ROOM = "demo"
 T = TypeVar("T")
@@ -91,6 +96,12 @@ class DemoResult:
     proxy: dict[str, object] = field(default_factory=dict)  # the emulator's counts
     servers: int = 1  # server processes sharing the room through Redis
     frames_relayed: int = 0  # avatar-frames the other processes got through Redis
+    devices: list[str] = field(default_factory=list)  # each player's tracker set
+    dropouts: str | None = None  # the simulated losses' spec
+    # the server's counts, by role: tracker frames that lacked one of the avatar's
+    # devices, and losses (carried on by the body model, never refused)
+    device_lost_frames: dict[str, int] = field(default_factory=dict)
+    device_losses: dict[str, int] = field(default_factory=dict)
 
     def as_json(self) -> dict[str, object]:
         return {"players": self.players, "spectators": self.spectators,
@@ -108,7 +119,9 @@ class DemoResult:
                 "playout_delay_ms": self.display_error.delay_json(),
                 # the emulator's chunks, bytes, stalls and median delay per direction
                 "network_counts": self.proxy, "servers": self.servers,
-                "frames_relayed": self.frames_relayed}
+                "frames_relayed": self.frames_relayed, "devices": self.devices,
+                "dropouts": self.dropouts, "device_lost_frames": self.device_lost_frames,
+                "device_losses": self.device_losses}
 
     def format_display_error(self) -> str:
         """What a spectator sees, per viewer mode: p50/p95 of the display error."""
@@ -139,11 +152,25 @@ class DemoResult:
             rows.insert(2, ("relayed", self.frames_relayed, f"solved frames the other "
                             f"{self.servers - 1} processes got through Redis, for their "
                             f"spectators"))
+        lost = sum(self.device_lost_frames.values())
+        if lost or self.dropouts:
+            rows.append(("lost", lost, "frames that lacked one of their avatar's devices "
+                         "(counted once per device), solved with it carried on: not errors"))
         width = max(len(str(n)) for _, n, _ in rows)
         where = f" over {self.servers} server processes" if self.servers > 1 else ""
-        lines = [f"{self.players} players, {self.spectators} spectators{where}, "
-                 f"{self.seconds:g} s; avatar-frames:"]
+        sets = ""
+        if self.devices:
+            kinds = sorted(set(self.devices), key=self.devices.index)
+            sets = ", tracker sets " + " / ".join(
+                f"{k} x{self.devices.count(k)}" for k in kinds)
+        lines = [f"{self.players} players{sets}, {self.spectators} spectators{where}, "
+                 f"{self.seconds:g} s"
+                 + (f", dropouts {self.dropouts}" if self.dropouts else "")
+                 + "; avatar-frames:"]
         lines += [f"  {name:<10} {n:>{width}}  {what}" for name, n, what in rows]
+        if self.device_losses:
+            lines.append("  losses by device: " + ", ".join(
+                f"{role} {n}" for role, n in sorted(self.device_losses.items())))
         gap = self.frames_sent - (self.frames_solved + self.frames_superseded
                                   + self.frames_discarded + self.frames_rejected
                                   + self.frames_unsendable)
@@ -269,18 +296,27 @@ def _spot(i: int, per_row: int = 4, spacing: float = 1.5) -> tuple[float, float]
 
 
 async def run_players(url: str, players: int, seconds: float, motion: Path,
-                      recorders: list[RecordingSource] | None = None) -> list[PlayerStats]:
+                      recorders: list[RecordingSource] | None = None,
+                      devices: list[tuple[str, ...]] | None = None,
+                      dropouts: DropoutSpec | None = None) -> list[PlayerStats]:
     """N players replaying the motion, all on one schedule (headsets tick together).
     ``recorders``: filled with the sources of the first MEASURED_PLAYERS, which keep
-    what they captured."""
-    sources: list[BvhSource | RecordingSource] = [
-        BvhSource(motion, loop=True, rate_hz=HEADSET_HZ, offset=_spot(i), start_frame=37 * i,
-                  smooth=True)
-        for i in range(players)]
-    if recorders is not None:
+    what they captured. ``devices``: the players' tracker sets, in turn; ``dropouts``:
+    each player loses devices at random (its own seed: seed + its number)."""
+    sources: list[PoseSource] = []
+    for i in range(players):
+        source: PoseSource = BvhSource(motion, loop=True, rate_hz=HEADSET_HZ, offset=_spot(i),
+                                       start_frame=37 * i, smooth=True)
+        if devices:
+            source = TrackerSetSource(source, devices[i % len(devices)])
+        sources.append(source)
+    if recorders is not None:  # the true poses of the set, before any loss
         recording = [RecordingSource(s) for s in sources[:MEASURED_PLAYERS]]
         sources[:len(recording)] = recording
         recorders.extend(recording)
+    if dropouts is not None:
+        sources = [TrackerSetSource(s, dropouts=dataclasses.replace(
+            dropouts, seed=dropouts.seed + i)) for i, s in enumerate(sources)]
     ticker = Ticker(sources[0].rate_hz) if sources else None
     try:
         return list(await asyncio.gather(*(
@@ -292,12 +328,14 @@ async def run_players(url: str, players: int, seconds: float, motion: Path,
 
 
 def _players_process(pipe: Connection, url: str, players: int, seconds: float,
-                     motion: Path, cores: Cores) -> None:
+                     motion: Path, cores: Cores, devices: list[tuple[str, ...]] | None,
+                     dropouts: DropoutSpec | None) -> None:
     pin_to_cores("players", cores)
     pipe.recv()  # go: the spectators are in the room
     recorders: list[RecordingSource] = []
     try:
-        stats = _run(run_players(url, players, seconds, motion, recorders))
+        stats = _run(run_players(url, players, seconds, motion, recorders, devices,
+                                 dropouts))
     except SessionError as err:  # e.g. refused frames: a link's stall let too many pile up
         pipe.send(("error", str(err)))
         return
@@ -344,6 +382,8 @@ async def run_clients(url: str, players: int, spectators: int, seconds: float,
                       render_mode: str = "interpolate", cores: Cores = (),
                       stop_server: Callable[[], None] = lambda: None,
                       spectator_urls: list[str] | None = None,
+                      devices: list[tuple[str, ...]] | None = None,
+                      dropouts: DropoutSpec | None = None,
                       ) -> tuple[int, list[SpectatorStats], dict[str, Any],
                                  list[CaptureLog], list[Arrival]]:
     """Spectators here, players in a process of their own: a player's capture must not
@@ -360,7 +400,8 @@ async def run_clients(url: str, players: int, spectators: int, seconds: float,
     ctx = mp.get_context("spawn")
     pipe, child = ctx.Pipe()
     process = ctx.Process(target=_players_process, args=(child, url, players, seconds,
-                                                         motion, cores), daemon=True)
+                                                         motion, cores, devices, dropouts),
+                          daemon=True)
     process.start()
     child.close()  # the child's end is the child's: its exit is then our EOF
     viewer = (HeadlessViewerProcess(url, ROOM, render, mode=Mode(render_mode))
@@ -411,7 +452,9 @@ def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
              render: Path | None = None, render_mode: str = "interpolate",
              busy: bool | None = None, helper: bool | None = None,
              network: NetworkSpec | None = None,
-             limits: ServerLimits | None = None, servers: int = 1) -> DemoResult:
+             limits: ServerLimits | None = None, servers: int = 1,
+             devices: list[str] | None = None,
+             dropouts: DropoutSpec | None = None) -> DemoResult:
     """The session; with ``render``, a headless viewer also draws the room to PNG files
     there and its ``capture_to_render`` joins the latency stages. ``busy``: the server
     busy-polls (``server.busy``); by default when it has a core of its own. ``helper``:
@@ -420,8 +463,12 @@ def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
     process, on the clients' cores), delayed both ways. ``servers`` > 1: that many
     server processes sharing the room through a Redis started here (``serve --redis``):
     the players on the first, which owns the room; the spectators spread over all, and
-    the others' ``relay`` hop (published to received) joins the latency stages."""
+    the others' ``relay`` hop (published to received) joins the latency stages.
+    ``devices``: the players' tracker sets (``--devices`` specs), taken in turn;
+    ``dropouts``: every player loses devices at random."""
     motion = motion or builtin_motion_path()
+    devices = devices or [DEFAULT_SET]
+    sets = [parse_devices(d) for d in devices]
     cores = demo_cores()
     if busy is None:  # pin_to_cores gives the server the first core alone; with
         # --servers they share it (and Redis), where polling would starve the others
@@ -456,7 +503,7 @@ def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
                     threading.Timer(RELAY_SETTLE_S, stop_others).start()
             frames_sent, spectator_stats, viewed, captures, arrivals = _run(run_clients(
                 url, players, spectators, seconds, motion, render, render_mode,
-                cores, stop_servers, [url, *(o.url for o in others)]))
+                cores, stop_servers, [url, *(o.url for o in others)], sets, dropouts))
         finally:
             if cores:
                 os.sched_setaffinity(0, cores)
@@ -489,7 +536,22 @@ def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
         # after the session, from what was recorded: it cost the session nothing
         display_error=measure_display_error(captures, arrivals, _server_rig(), solver),
         proxy=proxy.stats if proxy is not None else {}, servers=servers,
-        frames_relayed=total("frames_relayed"))
+        frames_relayed=total("frames_relayed"),
+        devices=[devices[i % len(devices)] for i in range(players)],
+        dropouts=str(dropouts) if dropouts is not None else None,
+        device_lost_frames=_per_role(every, "device_lost_frames"),
+        device_losses=_per_role(every, "device_losses"))
+
+
+def _per_role(metrics: list[dict[str, object]], name: str) -> dict[str, int]:
+    """A per-role counter of the servers' metrics, summed."""
+    out: dict[str, int] = {}
+    for m in metrics:
+        counts = m.get(name, {})
+        if isinstance(counts, dict):
+            for role, n in counts.items():
+                out[role] = out.get(role, 0) + int(n)
+    return out
 
 
 def _server_rig() -> Rig:

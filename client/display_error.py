@@ -181,7 +181,7 @@ def measure_display_error(captures: list[CaptureLog], arrivals: list[Arrival], r
         rot = np.empty((len(t), skeleton.num_joints, 4))
         root = np.empty((len(t), 3))
         for n in range(len(t)):  # in time order: warm-started as the server's solves are
-            pose = truth_solver.solve([(avatar_id, log.roles, tracked[n])])
+            pose = truth_solver.solve([(avatar_id, log.roles, tracked[n])], float(t[n]))
             rot[n], root[n] = pose.rotations[0], pose.root[0]
         offsets = np.broadcast_to(cal.offsets, (len(t), *cal.offsets.shape))
         _, true_p = forward_kinematics(skeleton, rot, root, offsets)

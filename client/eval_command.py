@@ -28,6 +28,8 @@ from posecast.solver.readers.errors import FormatError
 from posecast.solver.readers.joint_map import read_joint_map
 from posecast.solver.readers.vive import read_vive
 from posecast.solver.skeleton import SkeletonError
+from posecast.solver.tracking.devices import DEFAULT_SET, PRESETS
+from posecast.solver.tracking.dropouts import DropoutSpec
 
 
 def evaluate_file(path: Path, options: EvalOptions, progress: ProgressBar | None,
@@ -61,7 +63,9 @@ def run_eval(files: list[Path], solver: str, iterations: list[int] | None,
              calibration: str, smoothing: float, as_json: bool,
              delay_ms: float | None = None, predict: bool = False,
              predictor: str = "posecast", predict_on: str = "joints",
-             joint_map: Path | None = None) -> int:
+             joint_map: Path | None = None,
+             devices: tuple[str, ...] = PRESETS[DEFAULT_SET],
+             dropouts: DropoutSpec | None = None, naive: bool = False) -> int:
     if predict and delay_ms is None:
         print("posecast eval: --predict carries poses forward by the delay: give "
               "--delay-ms D too", file=sys.stderr)
@@ -81,7 +85,8 @@ def run_eval(files: list[Path], solver: str, iterations: list[int] | None,
     for limit in runs:
         failures: list[dict[str, str]] = []
         options = EvalOptions(solver, SolverOptions(max_iterations=limit), calibration,
-                              smoothing, delay_ms, params, predict_on)
+                              smoothing, delay_ms, params, predict_on, devices, dropouts,
+                              naive)
         clips: list[ClipResult] = []
         for path in files:
             bar = None if as_json else ProgressBar(path.name)
@@ -95,9 +100,13 @@ def run_eval(files: list[Path], solver: str, iterations: list[int] | None,
             finally:
                 if bar is not None:
                     bar.close()
-        doc: dict[str, object] = {"solver": solver,
+        doc: dict[str, object] = {"solver": solver, "devices": list(devices),
                                   "clips": [c.as_json() for c in clips],
                                   "summary": summarize(clips) if clips else {}}
+        if dropouts is not None:
+            doc["dropouts"] = str(dropouts)
+        if naive:
+            doc["body"] = "naive"
         p99 = summarize_p99(clips)
         if p99:  # the worst 1% of frames per device, beside the means
             doc["summary"] = {**summarize(clips), "p99_error_mm": p99}
@@ -118,31 +127,48 @@ def run_eval(files: list[Path], solver: str, iterations: list[int] | None,
         print(json.dumps(out))
     else:
         for limit, clips, _ in documents:
-            print(format_table(clips, solver, limit, delay_ms, predictor if predict else None))
+            print(format_table(clips, solver, limit, delay_ms, predictor if predict else None,
+                               _set_words(devices, dropouts, naive)))
     return 1 if failed else 0
 
 
+def _set_words(devices: tuple[str, ...], dropouts: DropoutSpec | None, naive: bool) -> str:
+    """The tracker set, its losses and the body model, as the table's heading says them."""
+    name = next((f"{k}-point" for k, v in PRESETS.items() if v == devices), None)
+    words = f"devices {name or ', '.join(devices)}"
+    if dropouts is not None:
+        words += f", dropouts {dropouts}"
+    return words + (", naive body" if naive else "")
+
+
 def format_table(clips: list[ClipResult], solver: str, limit: int | None,
-                 delay_ms: float | None = None, predict: str | None = None) -> str:
-    head = f"solver {solver}" + (f", at most {limit} iterations" if limit else "")
+                 delay_ms: float | None = None, predict: str | None = None,
+                 setting: str = "") -> str:
+    head = (f"solver {solver}" + (f", {setting}" if setting else "")
+            + (f", at most {limit} iterations" if limit else ""))
     if delay_ms is not None:
         head += (f", shown {delay_ms:g} ms after capture"
                  + (f", predicted ({predict})" if predict else ", not predicted"))
     delayed = delay_ms is not None
+    dropped = any("dropout_frames" in c.extra for c in clips)
     rows = [("clip", "kind", "frames", "mean mm", "held-out mm", "p99 mm", "rot deg",
-             "solve us",
-             "jerk m/s3" if delayed else "lag ms")]
+             "max step mm", *(("lost frames", "lost mm") if dropped else ()),
+             "solve us", "jerk m/s3" if delayed else "lag ms")]
     for c in clips:
         last = c.extra["jitter_m_s3"] if delayed else c.lag_ms
+        lost = (str(int(c.extra["dropout_frames"])),
+                f"{c.extra.get('dropout_error_mm', float('nan')):.1f}") if dropped else ()
         rows.append((c.file.split("/")[-1], c.kind, str(c.frames), f"{c.mean_error_mm:.1f}",
                      f"{c.heldout_error_mm:.1f}", f"{c.extra['p99_frame_error_mm']:.1f}",
-                     f"{c.rotation_error_deg:.1f}",
+                     f"{c.rotation_error_deg:.1f}", f"{c.extra['max_step_mm']:.0f}", *lost,
                      f"{c.solve_us_p50:.1f}", f"{last:.0f}" if delayed else f"{last:.1f}"))
     if clips:
         s = summarize(clips)
+        lost = (str(s["dropout_frames"]), f"{s.get('dropout_error_mm', float('nan')):.1f}"
+                ) if dropped else ()
         rows.append(("summary", "", "", f"{s['mean_error_mm']:.1f}",
                      f"{s['heldout_error_mm']:.1f}", f"{s['p99_frame_error_mm']:.1f}",
-                     f"{s['rotation_error_deg']:.1f}",
+                     f"{s['rotation_error_deg']:.1f}", f"{s['max_step_mm']:.0f}", *lost,
                      f"{s['solve_us_p50']:.1f}",
                      f"{s['jitter_m_s3']:.0f}" if delayed else ""))
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]

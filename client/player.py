@@ -30,7 +30,7 @@ from posecast.client.connection import (
     open_session,
     stop_task,
 )
-from posecast.client.sources.base import DeviceSample, PoseSource, now
+from posecast.client.sources.base import ROLES, DeviceSample, PoseSource, now
 from posecast.protocol import (
     Calibrate,
     DeviceRole,
@@ -167,6 +167,28 @@ class PlayerStats:
     seconds: float = 0.0  # from the first frame to the last
     ended_by: str = ""  # "source", "time", "stop", "cancel" or "server" (it went away)
     reconnects: int = 0  # sessions opened again after one was lost
+    # the player's devices (those it calibrated with, or has sent since) missing from a
+    # frame it sent, by role: frames without it, and times it was lost; and those
+    # missing from the last frame
+    lost_frames: Counter[str] = field(default_factory=Counter)
+    losses: Counter[str] = field(default_factory=Counter)
+    lost_now: tuple[str, ...] = ()
+    devices: tuple[str, ...] = ()  # every device it has sent, in ROLES order
+
+    def count_devices(self, roles: tuple[str, ...]) -> None:
+        """A frame with these devices was sent."""
+        known = self.devices
+        if any(r not in known for r in roles):
+            known = self.devices = tuple(r for r in ROLES if r in known or r in roles)
+        if len(roles) == len(known):
+            self.lost_now = ()
+            return
+        lost = tuple(r for r in known if r not in roles)
+        for role in lost:
+            self.lost_frames[role] += 1
+            if role not in self.lost_now:
+                self.losses[role] += 1
+        self.lost_now = lost
 
 
 class Player:
@@ -313,6 +335,7 @@ class Player:
                 session.clock.offset)):
             self._seq += 1
             self.stats.frames_sent += 1
+            self.stats.count_devices(sample.roles)
         else:  # the server is not keeping up (or going): this pose is stale next time
             self.stats.frames_dropped += 1
         return sample
@@ -322,6 +345,7 @@ class Player:
         message = calibrate_message(self.source.calibration(), session.clock.offset)
         await session.send(message)
         self.stats.calibrations_sent += 1
+        self.stats.count_devices(message.roles)
 
     async def _read_loop(self, session: Session) -> None:
         """Consume what the server sends a player: Pongs (in receive), Errors."""

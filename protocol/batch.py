@@ -16,10 +16,11 @@ from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from pydantic import ValidationInfo, field_validator, model_serializer
+from pydantic import Field, ValidationInfo, field_validator, model_serializer, model_validator
 
 from posecast.protocol.model import Model, first_duplicate
 from posecast.protocol.quantize import dequantize_rotations, quantize_rotations
+from posecast.protocol.roles import DEVICE_ROLES, LOST_BITS_LIMIT, roles_of_bits
 from posecast.protocol.validation import (
     MAX_AVATARS,
     MAX_JOINTS,
@@ -77,6 +78,13 @@ class AvatarFrame(Model):
     t_server_receive: Time
     t_solved: Time
     t_sent: Time
+    lost: int = Field(default=0, ge=0, lt=LOST_BITS_LIMIT)  # AvatarBatch.lost's bits
+
+    @property
+    def lost_roles(self) -> tuple[str, ...]:
+        """The avatar's devices that this frame lacked (solved from the body model or
+        carried on)."""
+        return roles_of_bits(self.lost)
 
     @field_validator("root", mode="plain")
     @classmethod
@@ -122,6 +130,9 @@ class AvatarBatch(Model):
     t_server_receive: Array  # (B,)
     t_solved: Array  # (B,)
     t_sent: Time  # when the server sent the batch
+    # (B,) uint16: which of each avatar's devices its frame lacked, as bits of
+    # DEVICE_ROLES (protocol.roles.role_bits); absent (a version-1 recording): none
+    lost: IntArray = Field(default=None)  # type: ignore[arg-type]
 
     @field_validator("avatar_ids", mode="plain")
     @classmethod
@@ -134,12 +145,17 @@ class AvatarBatch(Model):
                              f"than once")
         return readonly(ids)
 
-    @field_validator("seqs", "t_capture", "t_server_receive", "t_solved", mode="plain")
+    @field_validator("seqs", "t_capture", "t_server_receive", "t_solved", "lost",
+                     mode="plain")
     @classmethod
     def _per_avatar(cls, value: Any, info: ValidationInfo) -> Array | IntArray:
         column: NDArray[Any]
         if info.field_name == "seqs":
             column = int_column(value, is_wire(info), "<i8")
+        elif info.field_name == "lost":
+            column = int_column(value, is_wire(info), "<u2")
+            if column.shape[0] and column.max() >= LOST_BITS_LIMIT:
+                raise ValueError(f"bits beyond the {len(DEVICE_ROLES)} device roles")
         else:
             column = time_column(value, is_wire(info))
         _same_length(column, info)
@@ -180,20 +196,27 @@ class AvatarBatch(Model):
                              f"{int(counts.sum())}")
         return readonly(q)
 
+    @model_validator(mode="after")
+    def _no_losses_said(self) -> AvatarBatch:
+        if self.lost is None:  # a version-1 batch: no device lost
+            object.__setattr__(self, "lost", readonly(np.zeros(self.size, dtype=np.int64)))
+        return self
+
     @model_serializer(mode="plain")
     def _wire(self) -> dict[str, Any]:
         return avatar_batch_wire(self.avatar_ids, self.seqs, self.roots, self.joint_counts,
                                  self.rotations, self.t_capture, self.t_server_receive,
-                                 self.t_solved, self.t_sent)
+                                 self.t_solved, self.t_sent, self.lost)
 
     @classmethod
     def from_arrays(cls, avatar_ids: Sequence[int], seqs: Sequence[int], roots: ArrayLike,
                     rotations: ArrayLike | Sequence[ArrayLike], t_capture: ArrayLike,
                     t_server_receive: ArrayLike, t_solved: ArrayLike, t_sent: float,
-                    ) -> AvatarBatch:
+                    lost: ArrayLike | None = None) -> AvatarBatch:
         """A batch from the solver's arrays: ``roots`` (B, 3); ``rotations`` (B, J, 4),
         or a sequence of (J_b, 4) arrays when the skeletons differ; ``t_solved`` one time
-        for all or one per avatar. Copies: the solver may reuse its buffers."""
+        for all or one per avatar; ``lost`` each avatar's lost devices (bits; default
+        none). Copies: the solver may reuse its buffers."""
         n = len(avatar_ids)
         if isinstance(rotations, np.ndarray) and rotations.ndim == 3:
             counts = [rotations.shape[1]] * rotations.shape[0]
@@ -207,7 +230,8 @@ class AvatarBatch(Model):
             "joint_counts": counts, "rotations": flat, "t_capture": t_capture,
             "t_server_receive": t_server_receive,
             "t_solved": np.broadcast_to(np.asarray(t_solved, dtype=np.float64), (n,)),
-            "t_sent": float(t_sent)})
+            "t_sent": float(t_sent),
+            "lost": np.zeros(n, dtype=np.int64) if lost is None else lost})
 
     @classmethod
     def from_frames(cls, frames: Sequence[AvatarFrame], t_sent: float) -> AvatarBatch:
@@ -217,7 +241,8 @@ class AvatarBatch(Model):
                                [f.rotations for f in frames],
                                [f.t_capture for f in frames],
                                [f.t_server_receive for f in frames],
-                               [f.t_solved for f in frames], t_sent)
+                               [f.t_solved for f in frames], t_sent,
+                               [f.lost for f in frames])
 
     @property
     def size(self) -> int:
@@ -241,7 +266,8 @@ class AvatarBatch(Model):
             rotations=self.rotations[start:start + int(self.joint_counts[i])],
             t_capture=float(self.t_capture[i]),
             t_server_receive=float(self.t_server_receive[i]),
-            t_solved=float(self.t_solved[i]), t_sent=self.t_sent)
+            t_solved=float(self.t_solved[i]), t_sent=self.t_sent,
+            lost=int(self.lost[i]))
 
     def latencies(self, t_received: float | None = None) -> dict[str, NDArray[np.float64]]:
         """Stage durations of every avatar (arrays, seconds); see ``stage_latencies``."""
@@ -255,6 +281,7 @@ class AvatarBatch(Model):
 
 
 _BATCH_FIELDS = frozenset(AvatarBatch.model_fields)
+_V1_BATCH_FIELDS = _BATCH_FIELDS - {"lost"}  # a version-1 recording's batches
 # bytes per avatar of each packed column (rotations: 5 per joint, checked apart)
 _ROW_BYTES = {"avatar_ids": 8, "seqs": 8, "roots": 12, "joint_counts": 2, "t_capture": 8,
               "t_server_receive": 8, "t_solved": 8}
@@ -267,7 +294,8 @@ def avatar_batch_from_wire(obj: dict[str, Any]) -> AvatarBatch | None:
     accepts only what the model's own validation accepts, with the same result: a
     property test holds the two equal.
     """
-    if obj.keys() != _BATCH_FIELDS or obj["type"] != "avatar_batch":
+    keys = obj.keys()
+    if (keys != _BATCH_FIELDS and keys != _V1_BATCH_FIELDS) or obj["type"] != "avatar_batch":
         return None
     t_sent = obj["t_sent"]
     if type(t_sent) is not float or not math.isfinite(t_sent):
@@ -287,6 +315,12 @@ def avatar_batch_from_wire(obj: dict[str, Any]) -> AvatarBatch | None:
     if not batch_columns_ok(ids, seqs, counts, times, roots, len(obj["rotations"])) \
             or len(set(ids.tolist())) != n:
         return None
+    lost_bytes = obj.get("lost", bytes(2 * n))
+    if type(lost_bytes) is not bytes or len(lost_bytes) != 2 * n:
+        return None
+    lost = np.frombuffer(lost_bytes, "<u2")
+    if n and lost.max() >= LOST_BITS_LIMIT:
+        return None
     try:
         rotations = dequantize_rotations(obj["rotations"])
     except ValueError:
@@ -295,13 +329,13 @@ def avatar_batch_from_wire(obj: dict[str, Any]) -> AvatarBatch | None:
         avatar_ids=ids, seqs=seqs, roots=readonly(roots.reshape(n, 3).astype(np.float64)),
         joint_counts=readonly(counts.astype(np.int64)), rotations=readonly(rotations),
         t_capture=times[:n], t_server_receive=times[n:2 * n], t_solved=times[2 * n:],
-        t_sent=t_sent)
+        t_sent=t_sent, lost=readonly(lost.astype(np.int64)))
 
 
 def avatar_batch_wire(avatar_ids: ArrayLike, seqs: ArrayLike, roots: ArrayLike,
                       joint_counts: ArrayLike, rotations: ArrayLike, t_capture: ArrayLike,
                       t_server_receive: ArrayLike, t_solved: ArrayLike, t_sent: float,
-                      ) -> dict[str, Any]:
+                      lost: ArrayLike = 0) -> dict[str, Any]:
     """An AvatarBatch's wire map from its columns (for msgpack), unchecked: the
     serializer of a validated batch, and the server's direct encoder
     (``protocol.codec.encode_avatar_batch``), which checks its solver arrays itself."""
@@ -318,7 +352,8 @@ def avatar_batch_wire(avatar_ids: ArrayLike, seqs: ArrayLike, roots: ArrayLike,
             "rotations": quantize_rotations(rotations),
             "t_capture": packed(t_capture, "<f8"),
             "t_server_receive": packed(t_server_receive, "<f8"),
-            "t_solved": packed(t_solved, "<f8"), "t_sent": float(t_sent)}
+            "t_solved": packed(t_solved, "<f8"), "t_sent": float(t_sent),
+            "lost": packed(lost, "<u2")}
 
 
 def _same_length(column: NDArray[Any], info: ValidationInfo) -> None:

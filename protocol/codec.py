@@ -115,7 +115,7 @@ def _short(value: object) -> str:
 def encode_avatar_batch(avatar_ids: Sequence[int], seqs: Sequence[int], roots: NDArray[Any],
                         rotations: NDArray[Any], t_capture: Sequence[float],
                         t_server_receive: Sequence[float], t_solved: float,
-                        t_sent: float) -> bytes:
+                        t_sent: float, lost: Sequence[int] | int = 0) -> bytes:
     """An AvatarBatch's bytes straight from the solver's arrays (B, 3) and (B, J, 4).
 
     The server's hot path: the same bytes as ``encode(AvatarBatch.from_arrays(...))``
@@ -132,7 +132,7 @@ def encode_avatar_batch(avatar_ids: Sequence[int], seqs: Sequence[int], roots: N
     if not (np.isfinite(roots).all() and np.isfinite(rotations).all()):
         raise ValueError("encode_avatar_batch: roots and rotations must be finite")
     wire = avatar_batch_wire(avatar_ids, seqs, roots, rotations.shape[1], rotations,
-                             t_capture, t_server_receive, t_solved, t_sent)
+                             t_capture, t_server_receive, t_solved, t_sent, lost)
     return msgpack.packb(wire, use_bin_type=True)
 
 

@@ -62,7 +62,9 @@ from posecast.protocol.validation import (
     time_column,
 )
 
-PROTOCOL_VERSION = 1
+# 2: rosters name each avatar's devices, batches say which of them are lost (any
+# tracker set); a version-1 peer is refused with a clear error
+PROTOCOL_VERSION = 2
 SUPPORTED_VERSIONS = frozenset({PROTOCOL_VERSION})
 
 Array = NDArray[np.float64]
@@ -124,6 +126,9 @@ class AvatarInfo(Model):
     joint_names: tuple[Name, ...] = Field(min_length=1, max_length=MAX_JOINTS)
     parents: tuple[Annotated[int, Strict()], ...] = Field(min_length=1, max_length=MAX_JOINTS)
     rest_offsets: Array  # (J, 3) metres from the parent joint, float64 on the wire
+    # the devices that drive it (its player's tracker set, grown by devices switched on
+    # later); AvatarBatch.lost says which of them are lost now
+    devices: tuple[DeviceRole, ...] = Field(default=(), max_length=len(DEVICE_ROLES))
 
     @field_validator("rest_offsets", mode="plain")
     @classmethod
@@ -145,6 +150,9 @@ class AvatarInfo(Model):
         dup = first_duplicate(self.joint_names)
         if dup is not None:
             raise ValueError(f"joint_names: {dup!r} appears twice")
+        dup = first_duplicate(self.devices)
+        if dup is not None:
+            raise ValueError(f"devices: {dup!r} appears twice")
         # parents first, one root: the order forward kinematics walks (solver.Skeleton)
         if self.parents[0] != -1:
             raise ValueError(f"parents[0] is {self.parents[0]}: joint 0 must be the root (-1)")
@@ -284,7 +292,8 @@ def tracker_poses_from_wire(obj: dict[str, Any]) -> TrackerPoses | None:
 
 
 class Calibrate(_DevicePoses):
-    """The player stands in a T-pose; the server calibrates the avatar from these poses."""
+    """The player stands in a T-pose; the server calibrates the avatar from these poses:
+    the head and both hands at least, and every other device the player has."""
 
     type: Literal["calibrate"] = "calibrate"
 

@@ -544,7 +544,7 @@ class Session:
                         await self._common(ws, msg, t_received, "player")
                 except ProtocolError as err:
                     await self._reject(ws, err)
-                except ValueError as err:  # the solver refused the poses (e.g. a device lost)
+                except ValueError as err:  # refused: a capture time off the clock, a bad T-pose
                     await self._reject(ws, ProtocolError(ErrorCode.INVALID, str(err)))
                 except ConnectionClosed:
                     raise

@@ -14,13 +14,14 @@ import functools
 import numpy as np
 from numpy.typing import NDArray
 
+from posecast.protocol.roles import role_bits
 from posecast.server.helper import SolveHelper
-from posecast.solver.calibration import EFFECTOR_DEVICES, Calibration, calibrate
+from posecast.solver.calibration import Calibration, calibrate, mount_device
 from posecast.solver.fk import forward_kinematics
 from posecast.solver.ik import PoseBatch, Solver
 from posecast.solver.ik.shared import solve_analytic_shared
-from posecast.solver.kernels import bone_targets
-from posecast.solver.rig import EFFECTORS, Rig
+from posecast.solver.rig import Rig
+from posecast.solver.tracking.rows import TrackingRows, lost_roles, slots_of
 
 Array = NDArray[np.float64]
 
@@ -35,22 +36,14 @@ def pose_dicts(roles: tuple[str, ...], positions: Array,
             {r: rotations[i] for i, r in enumerate(roles)})
 
 
-# bounded: the roles come from clients, and ten roles have 3.6 million orders
-@functools.lru_cache(maxsize=256)
-def driving_indices(roles: tuple[str, ...]) -> NDArray[np.intp]:
-    """Where each driving device (EFFECTOR_DEVICES order) is in a frame's roles (cached:
-    a player sends the same roles every frame; read-only, as the cache shares it). An
-    index array, not a list: ``take`` with it costs 0.3 us, indexing with a list 1.5."""
-    missing = [d for d in EFFECTOR_DEVICES if d not in roles]
-    if missing:
-        raise ValueError(f"the frame lacks the driving devices {', '.join(missing)}")
-    index = np.array([roles.index(d) for d in EFFECTOR_DEVICES], dtype=np.intp)
-    index.flags.writeable = False
-    return index
+@functools.lru_cache(maxsize=256)  # bounded: the roles come from clients
+def _present_bits(roles: tuple[str, ...]) -> int:
+    return role_bits(roles)
 
 
 class AvatarSolver:
-    """Calibrate avatars and solve any subset of them in one call to the solver."""
+    """Calibrate avatars and solve any subset of them in one call to the solver, from
+    whatever devices each frame has (``solver.tracking``)."""
 
     def __init__(self, rig: Rig, solver: str = "analytic", capacity: int = 8,
                  helper_cores: tuple[int, ...] = ()) -> None:
@@ -60,25 +53,29 @@ class AvatarSolver:
         self.solver = Solver(rig, solver)
         self.calibrations: dict[int, Calibration] = {}
         self._slot: dict[int, int] = {}
-        J, E = rig.skeleton.num_joints, len(EFFECTORS)
+        self._has_bits: dict[int, int] = {}  # each avatar's devices (protocol.roles bits)
+        J = rig.skeleton.num_joints
+        self.tracking = TrackingRows(capacity)  # mounts, body model, targets per slot
         self._rotations = np.empty((capacity, J, 4))  # last solved pose (warm start)
         self._roots = np.empty((capacity, 3))
         self._offsets = np.empty((capacity, J, 3))  # each avatar's bone lengths
-        self._mount_p = np.empty((capacity, E, 3))  # driving devices' mounts
-        self._mount_q = np.empty((capacity, E, 4))
-        self._targets = np.empty((capacity, E, 7))  # staged: each avatar's next targets
         self._iterations = np.zeros(capacity, dtype=np.int64)
         self.helper_cores = helper_cores if solver == "analytic" else ()
         self._helper: SolveHelper | None = None
 
     def warm_up(self) -> None:
-        """Solve once now: loading the compiled solver takes ~0.2 s, not the first frame's."""
+        """Solve once now: loading the compiled solver and the tracking takes ~0.2 s, not
+        the first frame's."""
         state = PoseBatch.canonical(self.rig, 1)
         gq, gp = forward_kinematics(self.rig.skeleton, state.rotations, state.root)
         eff = self.rig.effectors
         self.solver.solve(np.concatenate([gp[:, eff], gq[:, eff]], axis=-1), state)
-        bone_targets(np.zeros((1, 7)), np.zeros((1, 3)), np.tile([0.0, 0, 0, 1], (1, 1)),
-                     np.empty((1, 7)))
+        rows = TrackingRows(1)
+        frozen = np.zeros((0, 7))
+        frozen.flags.writeable = False  # as a decoded frame's poses are
+        for poses in (np.zeros((0, 7)), frozen):
+            rows.stage(0, np.zeros(0, dtype=np.intp), poses, 0.0)
+        rows.fill(np.zeros(1, dtype=np.intp))
         helper = self.helper()
         if helper is not None:  # its loop and the shared solve load now too (n = 0)
             solve_analytic_shared(*helper.batch_args(0))
@@ -92,10 +89,10 @@ class AvatarSolver:
             if self._helper is not None:  # it holds the arrays being replaced
                 self._helper.stop(wait=False)
                 self._helper = None
-            for name in ("_rotations", "_roots", "_offsets", "_mount_p", "_mount_q",
-                         "_targets", "_iterations"):
+            for name in ("_rotations", "_roots", "_offsets", "_iterations"):
                 a = getattr(self, name)
                 setattr(self, name, np.concatenate([a, np.empty_like(a)]))
+            self.tracking.grow()
             if restart:  # here, as a player calibrates, not in the next frame's solve
                 self.helper()
         return free
@@ -112,24 +109,49 @@ class AvatarSolver:
         self._rotations[slot] = cal.pose
         self._roots[slot] = cal.root
         self._offsets[slot] = cal.offsets
-        self._mount_p[slot], self._mount_q[slot] = cal.effector_mounts()
+        self.tracking.calibrate(slot, cal)
+        self._has_bits[avatar_id] = role_bits(self.devices(avatar_id))
         return cal
 
     def remove(self, avatar_id: int) -> None:
         self.calibrations.pop(avatar_id, None)
         self._slot.pop(avatar_id, None)
+        self._has_bits.pop(avatar_id, None)
 
-    def stage(self, avatar_id: int, roles: tuple[str, ...], poses: Array) -> None:
-        """Take a frame's driving devices (poses (D, 7): position | quaternion) as the
-        avatar's targets for its next solve; a newer frame replaces an older one. A room
-        stages each frame as it arrives, while the rest of the burst is still coming in,
-        so the solve itself only gathers rows."""
+    def devices(self, avatar_id: int) -> tuple[str, ...]:
+        """The devices the avatar uses (calibrated with, or mounted since)."""
+        return lost_roles(self.tracking.has[self._slot[avatar_id]])
+
+    def lost(self, avatar_id: int) -> NDArray[np.bool_]:
+        """(ND,) in ``solver.tracking.devices`` order: the devices the avatar uses that
+        its newest frame lacks."""
+        return self.tracking.lost(self._slot[avatar_id])
+
+    def stage(self, avatar_id: int, roles: tuple[str, ...], poses: Array,
+              t: float = 0.0) -> tuple[int, tuple[str, ...]]:
+        """Take a frame (poses (D, 7): position | quaternion, captured at ``t`` s) as the
+        avatar's next; a newer frame replaces an older one. Any devices may be missing:
+        returns the avatar's devices the frame lacks (``protocol.roles`` bits), and the
+        devices it had not used before, which are mounted where the body was last
+        solved. A room stages each frame as it arrives, while the rest of the burst is
+        still coming in, so the solve itself only gathers rows."""
         slot = self._slot.get(avatar_id)
         if slot is None:
             raise NotCalibratedError(f"avatar {avatar_id} has not been calibrated: "
                                      "send a calibrate message (T-pose) first")
-        device = poses.take(driving_indices(roles), axis=0)  # new (E, 7), C order
-        bone_targets(device, self._mount_p[slot], self._mount_q[slot], self._targets[slot])
+        slots = slots_of(roles)
+        new: tuple[str, ...] = ()
+        if not self.tracking.has[slot, slots].all():
+            new = tuple(r for r, s in zip(roles, slots.tolist(), strict=True)
+                        if not self.tracking.has[slot, s])
+            for role in new:
+                row = poses[roles.index(role)]
+                self.tracking.mount(slot, role, mount_device(
+                    self.rig, self._offsets[slot], self._rotations[slot], self._roots[slot],
+                    role, row[:3], row[3:]))
+            self._has_bits[avatar_id] = role_bits(self.devices(avatar_id))
+        self.tracking.stage(slot, slots, poses, t)
+        return self._has_bits[avatar_id] & ~_present_bits(roles), new
 
     def helper(self) -> SolveHelper | None:
         """The helper thread over the current arrays (started on first use), if any."""
@@ -145,14 +167,18 @@ class AvatarSolver:
             self._helper = None
 
     def _analytic_args(self) -> tuple[object, ...]:
-        return self.solver.analytic_args(self._offsets, self._targets, self._rotations,
-                                       self._roots, self._iterations)
+        t = self.tracking
+        return self.solver.analytic_args(self._offsets, t.targets, t.weights,
+                                       self._rotations, self._roots, self._iterations)
 
     def solve_staged(self, avatar_ids: list[int]) -> PoseBatch:
         """Solve these avatars (each staged) as one batch, each warm-started from its last
         pose; their new poses in the order asked (new arrays: the next solve does not
         change them)."""
         slot_list = [self._slot[a] for a in avatar_ids]
+        t = self.tracking
+        if slot_list:
+            t.fill(np.array(slot_list, dtype=np.intp))
         helper = self.helper() if slot_list else None
         if helper is not None:  # in place, wherever the rows are, with the helper
             n = len(slot_list)
@@ -167,11 +193,11 @@ class AvatarSolver:
             # rows where they are, without gathering and scattering four arrays
             rows = slice(first, first + len(slot_list))
             state = PoseBatch(self._rotations[rows], self._roots[rows])
-            self.solver.solve(self._targets[rows], state, self._offsets[rows])
+            self.solver.solve(t.targets[rows], state, self._offsets[rows], t.weights[rows])
             return PoseBatch(state.rotations.copy(), state.root.copy(), state.iterations)
         slots = np.array(slot_list, dtype=np.intp)
         state = PoseBatch(self._rotations[slots], self._roots[slots])
-        self.solver.solve(self._targets[slots], state, self._offsets[slots])
+        self.solver.solve(t.targets[slots], state, self._offsets[slots], t.weights[slots])
         self._rotations[slots] = state.rotations
         self._roots[slots] = state.root
         return state
@@ -180,9 +206,11 @@ class AvatarSolver:
         """Where the avatar's rows are: a batch in this order solves in place."""
         return self._slot[avatar_id]
 
-    def solve(self, frames: list[tuple[int, tuple[str, ...], Array]]) -> PoseBatch:
+    def solve(self, frames: list[tuple[int, tuple[str, ...], Array]],
+              t: float = 0.0) -> PoseBatch:
         """Solve the avatars of ``frames`` [(avatar id, roles, poses (D, 7): position |
-        quaternion)] as one batch: ``stage`` each, then ``solve_staged``."""
+        quaternion)], all captured at ``t``, as one batch: ``stage`` each, then
+        ``solve_staged``."""
         for avatar_id, roles, poses in frames:
-            self.stage(avatar_id, roles, poses)
+            self.stage(avatar_id, roles, poses, t)
         return self.solve_staged([avatar_id for avatar_id, _, _ in frames])

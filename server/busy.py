@@ -86,7 +86,7 @@ class WarmPath:
             msg = decode_tracker_poses(self.frame)  # the server's own hot path
             if msg is None:
                 return
-            self.solver.stage(TWIN, msg.roles, msg.poses)
+            self.solver.stage(TWIN, msg.roles, msg.poses, msg.t_capture_server)
             self._msg = msg
         elif self._phase == 1:
             self._solved = self.solver.solve_staged([TWIN])

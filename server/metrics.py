@@ -6,6 +6,7 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass, field
 
+from posecast.protocol.roles import roles_of_bits
 from posecast.server.latency import RelayLatency, ServerLatency, ViewerLatency
 
 
@@ -44,6 +45,20 @@ class Metrics:
     viewer_reports: int = 0  # reports taken (a refused one counts in ``rejected``)
     viewer_latency: ViewerLatency = field(default_factory=ViewerLatency)
     relay_latency: RelayLatency = field(default_factory=RelayLatency)
+    # an avatar's devices missing from its player's frames (never an error: the body
+    # carries on), by role: tracker frames that lacked it, and losses (tracked in the
+    # avatar's frame before, not in this one); devices mounted after calibration
+    device_lost_frames: Counter[str] = field(default_factory=Counter)
+    device_losses: Counter[str] = field(default_factory=Counter)
+    devices_mounted: Counter[str] = field(default_factory=Counter)
+
+    def count_losses(self, before: int, now: int) -> None:
+        """A frame's lost devices (``now``, protocol.roles bits) after the avatar's last
+        frame's (``before``)."""
+        for role in roles_of_bits(now):
+            self.device_lost_frames[role] += 1
+        for role in roles_of_bits(now & ~before):
+            self.device_losses[role] += 1
 
     def as_json(self) -> dict[str, object]:
         return {"connections": self.connections, "frames_received": self.frames_received,
@@ -57,4 +72,7 @@ class Metrics:
                 "frames_delivered": self.frames_delivered,
                 "frames_dropped": self.frames_dropped,
                 "viewer_reports": self.viewer_reports, "rejected": dict(self.rejected),
-                "limited": dict(self.limited)}
+                "limited": dict(self.limited),
+                "device_lost_frames": dict(self.device_lost_frames),
+                "device_losses": dict(self.device_losses),
+                "devices_mounted": dict(self.devices_mounted)}

@@ -21,7 +21,7 @@ from prometheus_client.core import (
 from prometheus_client.process_collector import ProcessCollector
 from prometheus_client.registry import Collector
 
-from posecast.protocol import ErrorCode
+from posecast.protocol import DEVICE_ROLES, ErrorCode
 from posecast.server.clock import now
 
 if TYPE_CHECKING:  # the session holds the registry: imported for its type alone
@@ -73,6 +73,19 @@ class SessionCollector(Collector):
         for code in sorted({*ErrorCode, *m.rejected}):
             rejected.add_metric([str(code)], m.rejected.get(code, 0))
         yield rejected
+        devices = (
+            ("device_lost_frames", "Tracker frames that lacked one of their avatar's "
+             "devices (carried on by the body model, never refused), by role."),
+            ("device_losses", "Times one of an avatar's devices was lost (tracked in its "
+             "last frame, not in this one), by role."),
+            ("devices_mounted", "Devices mounted after their avatar's calibration "
+             "(switched on later), by role."))
+        for name, words in devices:
+            family = CounterMetricFamily(f"posecast_{name}", words, labels=["role"])
+            counts = getattr(m, name)
+            for role in DEVICE_ROLES:  # zeros too: rates need the series from the start
+                family.add_metric([role], counts.get(role, 0))
+            yield family
         limited = CounterMetricFamily("posecast_limited", "Refusals and closes by the "
                                       "server limit that made them.", labels=["limit"])
         for limit, n in sorted(m.limited.items()):

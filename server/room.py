@@ -35,6 +35,7 @@ from posecast.protocol import (
 from posecast.protocol.arrivals import ArrivalStamps
 from posecast.protocol.codec import encode_avatar_batch
 from posecast.protocol.messages import TrackerPoses
+from posecast.protocol.roles import DEVICE_ROLES
 from posecast.protocol.validation import MAX_NAME_CHARS, sendable_rows
 from posecast.server.avatars import AvatarSolver
 from posecast.server.busy import OpenBursts
@@ -57,9 +58,11 @@ class SharedBatch:
 
     def __init__(self, avatar_ids: list[int], seqs: list[int], roots: np.ndarray,
                  rotations: np.ndarray, t_capture: list[float],
-                 t_server_receive: list[float], t_solved: float) -> None:
+                 t_server_receive: list[float], t_solved: float,
+                 lost: list[int] | None = None) -> None:
         self.args = (avatar_ids, seqs, roots, rotations, t_capture, t_server_receive,
                      t_solved)
+        self.lost = lost if lost is not None else [0] * len(avatar_ids)
         self.size = len(avatar_ids)
         self._encoded: bytes | None = None
         self.t_sent: float | None = None  # when first encoded: its bytes went out
@@ -72,12 +75,14 @@ class SharedBatch:
     def encoded(self) -> bytes:
         if self._encoded is None:  # t_sent: now, as the bytes go to the sockets
             self.t_sent = now()
-            self._encoded = encode_avatar_batch(*self.args, t_sent=self.t_sent)
+            self._encoded = encode_avatar_batch(*self.args, t_sent=self.t_sent,
+                                                lost=self.lost)
         return self._encoded
 
     def frame(self, index: int) -> AvatarFrame:
         if self._batch is None:
-            self._batch = AvatarBatch.from_arrays(*self.args, t_sent=self.args[-1])
+            self._batch = AvatarBatch.from_arrays(*self.args, t_sent=self.args[-1],
+                                                  lost=self.lost)
         return self._batch.frame(index)
 
 
@@ -87,6 +92,7 @@ class RelayedBatch(SharedBatch):
 
     def __init__(self, data: bytes, batch: AvatarBatch) -> None:
         self.args = (batch.avatar_ids.tolist(),)  # type: ignore[assignment]
+        self.lost = batch.lost.tolist()
         self.size = batch.size
         self._encoded = data
         self.t_sent = batch.t_sent
@@ -115,6 +121,7 @@ class Avatar:
     last_seq: int = -1  # of its player's last frame taken on this connection
     # the T-pose it was calibrated from (roles, poses (D, 7)): what Redis keeps of it
     tpose: tuple[tuple[str, ...], np.ndarray] | None = None
+    lost_bits: int = 0  # its devices its newest frame lacks (protocol.roles bits)
 
 
 # a spectator whose socket holds more unsent bytes than this is slow: its frames go
@@ -189,16 +196,24 @@ class Room:
         # before anything changes: a refused T-pose leaves the last calibration in place
         check_t_pose(frame_roles, poses[:, :3], self.limits.body_extent_m)
         cal = self.solver.calibrate(avatar.avatar_id, frame_roles, poses[:, :3], poses[:, 3:])
-        sk = self.solver.rig.skeleton
-        avatar.info = AvatarInfo(avatar_id=avatar.avatar_id, display_name=avatar.display_name,
-                                 joint_names=sk.names, parents=tuple(int(p) for p in sk.parents),
-                                 rest_offsets=cal.offsets)
+        avatar.lost_bits = 0
+        info = self._describe(avatar, cal.offsets)
         if self._pending.pop(avatar.avatar_id, None) is not None:  # of the old T-pose
             self.metrics.frames_discarded += 1
         avatar.tpose = (frame_roles, np.array(poses))
         self.keep(avatar)
-        self.broadcast_roster(AvatarRoster(avatars=(avatar.info,)))
+        self.broadcast_roster(AvatarRoster(avatars=(info,)))
         return cal
+
+    def _describe(self, avatar: Avatar, offsets: np.ndarray) -> AvatarInfo:
+        """The avatar's roster entry: its calibrated skeleton and its devices."""
+        sk = self.solver.rig.skeleton
+        devices = self.solver.devices(avatar.avatar_id)
+        avatar.info = AvatarInfo(
+            avatar_id=avatar.avatar_id, display_name=avatar.display_name,
+            joint_names=sk.names, parents=tuple(int(p) for p in sk.parents),
+            rest_offsets=offsets, devices=tuple(r for r in DEVICE_ROLES if r in devices))
+        return avatar.info
 
     def keep(self, avatar: Avatar, resumable: bool = True) -> None:
         """The avatar's record into Redis (an owned room's, with ``serve --redis``): with
@@ -217,20 +232,30 @@ class Room:
                t_received: float) -> None:
         """Queue a player's frame (latest wins) and make sure a solve is coming. Its
         targets are computed now, while the rest of the burst is still arriving; a
-        ValueError (a driving device missing, a capture time that is not near the server's
-        clock) rejects this frame alone."""
+        ValueError (a capture time that is not near the server's clock) rejects this
+        frame alone. A frame may lack any of the avatar's devices: they are carried on
+        (``solver.tracking``) and counted, never refused."""
         t_capture = frame.t_capture_server  # the client's sum: it may overflow
         if not abs(t_capture - t_received) <= self.limits.capture_skew_s:  # NaN, inf fail
             raise ValueError(f"tracker_frame.t_capture + clock_offset = {t_capture!r} is "
                              f"not within {self.limits.capture_skew_s:g} s of the server's "
                              f"clock ({t_received:.3f}): sync the clock with pings first")
-        self.solver.stage(avatar_id, frame.roles, frame.poses)
+        lost, new = self.solver.stage(avatar_id, frame.roles, frame.poses, t_capture)
+        avatar = self.avatars.get(avatar_id)
+        if avatar is not None:
+            if lost or avatar.lost_bits:
+                self.metrics.count_losses(avatar.lost_bits, lost)
+            avatar.lost_bits = lost
+            if new and avatar.info is not None:  # devices switched on since calibration
+                self.metrics.devices_mounted.update(new)
+                info = self._describe(avatar, avatar.info.rest_offsets)
+                self.keep(avatar)
+                self.broadcast_roster(AvatarRoster(avatars=(info,)))
         if avatar_id in self._pending:
             self.metrics.frames_superseded += 1
         self._pending[avatar_id] = (frame, t_received)
         self._arrived = True
         self._awaited.discard(avatar_id)
-        avatar = self.avatars.get(avatar_id)
         due = None
         if avatar is not None:
             if not self._scheduled:  # this frame opens a burst: when was it due?
@@ -332,8 +357,10 @@ class Room:
             t_received = [t for _, _, t in pending]
             roots, rotations = roots[keep], rotations[keep]
             captured, arrived = captured[keep], arrived[keep]
+        avatars = self.avatars
+        lost = [avatars[a].lost_bits if a in avatars else 0 for a in ids]
         shared = SharedBatch(ids, [f.seq for _, f, _ in pending], roots, rotations,
-                             t_capture, t_received, t_solved)
+                             t_capture, t_received, t_solved, lost)
         self.metrics.frames_solved += len(pending)
         self.metrics.batches += 1
         self.deliver(shared)

@@ -9,12 +9,12 @@ Two methods:
   and the knees raised to where the legs pivot and bend as the trackers see it (the
   ankles kept in place).
 
-Either way every device then gets a *mount*: its pose in the frame of the bone it is
-strapped to, fixed at this frame (a forearm tracker follows only part of its bone's
-twist: ``FOREARM_TWIST_SHARE``; a knee tracker rides around the knee as it bends:
-``KNEE_BEND_SHARE``, and turns outwards: ``KNEE_TURN_OUT``). Driving devices (head,
-hip, hands, feet) give the solver its targets through their mounts; held-out devices
-(forearms, knees) are only predicted through theirs.
+Only the head and hands shape the body; every device then gets a *mount*: its pose in
+the frame of the bone it is strapped to, fixed at this frame (a forearm tracker follows
+only part of its bone's twist: ``FOREARM_TWIST_SHARE``; a knee tracker rides around the
+knee as it bends: ``KNEE_BEND_SHARE``, and turns outwards: ``KNEE_TURN_OUT``). The devices of the avatar's
+tracker set give the solver its targets through their mounts (``solver.tracking``); the
+others (held out in an evaluation) are only predicted through theirs.
 """
 
 from __future__ import annotations
@@ -26,7 +26,6 @@ from numpy.typing import ArrayLike, NDArray
 
 from posecast.solver import rotations as R
 from posecast.solver.kernels import bone_targets
-from posecast.solver.motion import DRIVING_DEVICES
 from posecast.solver.rig import EFFECTORS, Rig, global_pose
 
 # device -> the bone (role) it is mounted on. A forearm tracker is on the forearm whatever
@@ -37,10 +36,12 @@ DEVICE_BONES: dict[str, str] = {
     "head": "head", "hip": "pelvis", "left_hand": "hand_l", "right_hand": "hand_r",
     "left_foot": "foot_l", "right_foot": "foot_r",
     "left_forearm": "forearm_l", "right_forearm": "forearm_r",
-    "left_knee": "shin_l", "right_knee": "shin_r",
+    "left_knee": "shin_l", "right_knee": "shin_r", "chest": "chest",
 }
 # driving device of each effector, in rig.EFFECTORS order
 EFFECTOR_DEVICES = ("head", "hip", "left_hand", "right_hand", "left_foot", "right_foot")
+# what a calibration cannot do without: the height, the arm span and the heading
+CALIBRATION_DEVICES = ("head", "left_hand", "right_hand")
 
 # Priors of the fit, in body coordinates (x left, y up, z forward), metres
 EYE_FROM_HEAD_JOINT = np.array([0.0, 0.06, 0.09])  # HMD origin sits at the eyes
@@ -176,10 +177,11 @@ def _aim(rig: Rig, offsets: NDArray[np.float64], pose: NDArray[np.float64],
 def calibrate(rig: Rig, positions: dict[str, NDArray[np.float64]],
               rotations: dict[str, NDArray[np.float64]], method: str = "fit") -> Calibration:
     """Calibrate from one T-pose frame of device poses (world metres, +y up, floor y=0).
-    Only the driving devices shape the body; every device given gets a mount."""
+    The head and hands shape the body (its height, arm span and heading); every device
+    given gets a mount."""
     if method not in METHODS:
         raise ValueError(f"unknown calibration {method!r}: choose one of {', '.join(METHODS)}")
-    missing = [d for d in DRIVING_DEVICES if d not in positions]
+    missing = [d for d in CALIBRATION_DEVICES if d not in positions]
     if missing:
         raise ValueError(f"calibration needs the devices {', '.join(missing)}")
     sk = rig.skeleton
@@ -243,26 +245,32 @@ def calibrate(rig: Rig, positions: dict[str, NDArray[np.float64]],
         gq, gp = global_pose(sk.with_offsets(offsets), pose, root)
         raise_leg_pivots(sk.parents, leg_joints(rig), offsets, gq,
                          R.rotate(yaw, [0.0, s, 0.0]))
-    gq, gp = global_pose(sk.with_offsets(offsets), pose, root)
-    mounts = {}
-    for name, p in positions.items():
-        joint = rig.role(DEVICE_BONES[name])
-        if name in BEND_SHARE_DEVICES:
-            parent_q = gq[sk.parents[joint]]
-            frame = _partly_bent(rig, joint, parent_q, gq[joint], KNEE_BEND_SHARE)
-            mounts[name] = Mount(joint, R.rotate(R.conjugate(frame), p - gp[joint]),
-                                 R.mul(R.conjugate(parent_q), rotations[name]),
-                                 bend_share=KNEE_BEND_SHARE,
-                                 turn_out=KNEE_TURN_OUT * (-1.0 if name == "left_knee" else 1.0))
-            continue
-        share = FOREARM_TWIST_SHARE if name in TWIST_SHARE_DEVICES else 1.0
-        bq = gq[joint]
-        if share != 1.0:
-            bq = _partly_twisted(rig, joint, gq[sk.parents[joint]], bq, share)
-        inv = R.conjugate(bq)
-        mounts[name] = Mount(joint, R.rotate(inv, p - gp[joint]),
-                             R.mul(inv, rotations[name]), share)
+    mounts = {name: mount_device(rig, offsets, pose, root, name, p, rotations[name])
+              for name, p in positions.items()}
     return Calibration(rig, offsets, pose, root, mounts, float(s))
+
+
+def mount_device(rig: Rig, offsets: NDArray[np.float64], pose: NDArray[np.float64],
+                 root: NDArray[np.float64], name: str, position: NDArray[np.float64],
+                 rotation: NDArray[np.float64]) -> Mount:
+    """The mount of a device seen at ``position``, ``rotation`` while the body is in
+    ``pose`` at ``root``: at the calibration, or, for a device switched on later, in the
+    body's pose as last solved."""
+    sk = rig.skeleton
+    gq, gp = global_pose(sk.with_offsets(offsets), pose, root)
+    joint = rig.role(DEVICE_BONES[name])
+    if name in BEND_SHARE_DEVICES:
+        parent_q = gq[sk.parents[joint]]
+        frame = _partly_bent(rig, joint, parent_q, gq[joint], KNEE_BEND_SHARE)
+        return Mount(joint, R.rotate(R.conjugate(frame), position - gp[joint]),
+                     R.mul(R.conjugate(parent_q), rotation), bend_share=KNEE_BEND_SHARE,
+                     turn_out=KNEE_TURN_OUT * (-1.0 if name == "left_knee" else 1.0))
+    share = FOREARM_TWIST_SHARE if name in TWIST_SHARE_DEVICES else 1.0
+    bq = gq[joint]
+    if share != 1.0:
+        bq = _partly_twisted(rig, joint, gq[sk.parents[joint]], bq, share)
+    inv = R.conjugate(bq)
+    return Mount(joint, R.rotate(inv, position - gp[joint]), R.mul(inv, rotation), share)
 
 
 def leg_joints(rig: Rig) -> list[tuple[int, int, int]]:

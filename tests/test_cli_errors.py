@@ -370,7 +370,8 @@ def test_play_says_where_it_joined_and_stops_on_ctrl_c(server: str, tmp_path: Pa
     play.wait_for(" frames/s")  # the progress line: frames are going out
     code, out, err = play.interrupt()
     assert code == 130 and "Traceback" not in err + out
-    summary = re.fullmatch(r"sent (\d+) frames in ([\d.]+) s \(([\d.]+) frames/s\)\n", out)
+    summary = re.fullmatch(r"sent (\d+) frames in ([\d.]+) s \(([\d.]+) frames/s\) from "
+                           r"10 devices \(head, [a-z_, ]+\); no device lost\n", out)
     assert summary is not None and int(summary[1]) > 0, out
 
     # the server's log names role, name, room and address on join and on leave

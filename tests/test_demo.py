@@ -103,3 +103,34 @@ def test_demo_servers_must_be_one_or_more(capsys: pytest.CaptureFixture[str]) ->
         main(["demo", "--servers", "0"])
     assert exit_.value.code == 2
     assert "--servers" in capsys.readouterr().err
+
+
+def test_a_room_of_3_4_and_6_point_players_losing_devices(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """`demo --devices 3 --devices 4 --devices 6 --dropouts ...`: every frame solved or
+    superseded (none refused for a missing device), both identities hold, and the losses
+    are counted by device."""
+    assert main(["demo", "--players", "3", "--spectators", "1", "--seconds", "3",
+                 "--devices", "3", "--devices", "4", "--devices", "6",
+                 "--dropouts", "60,max=0.5,seed=3"]) == 0
+    out = capsys.readouterr().out
+    assert "tracker sets 3 x1 / 4 x1 / 6 x1" in out and "dropouts 60/min" in out
+    counts = {line.split()[0]: line.split()[1] for line in out.splitlines()
+              if line.startswith("  ") and len(line.split()) > 1}
+    assert counts["rejected"] == "0", out
+    assert "= solved + superseded + discarded + rejected + unsendable: yes" in out, out
+    assert "= delivered + dropped: yes" in out, out
+    assert int(counts["lost"]) > 0
+    assert "losses by device:" in out
+
+
+def test_demo_json_names_the_sets_and_counts_losses(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["demo", "--players", "2", "--spectators", "1", "--seconds", "2",
+                 "--devices", "3", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["devices"] == ["3", "3"] and doc["dropouts"] is None
+    assert doc["frames_rejected"] == 0 and doc["rejected"] == {}
+    assert doc["frames_sent"] == (doc["frames_solved"] + doc["frames_superseded"]
+                                  + doc["frames_discarded"])
+    assert doc["device_lost_frames"] == {}  # head and hands only, none of them lost

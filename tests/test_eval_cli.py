@@ -16,9 +16,10 @@ from posecast.client.cli import main
 
 CLIP_KEYS = {"file", "kind", "frames", "position_error_mm", "mean_error_mm",
              "heldout_error_mm", "rotation_error_deg", "solve_us_p50", "lag_ms",
-             "p99_error_mm", "p99_frame_error_mm"}  # the worst 1% of frames, added
+             "p99_error_mm", "p99_frame_error_mm",  # the worst 1% of frames, added
+             "max_step_mm"}  # the largest frame-to-frame move, added with tracker sets
 SUMMARY_KEYS = {"mean_error_mm", "heldout_error_mm", "rotation_error_deg", "solve_us_p50",
-                "p99_frame_error_mm", "p99_error_mm"}
+                "p99_frame_error_mm", "p99_error_mm", "max_step_mm"}
 VIVE_DEVICES = {"head", "hip", "left_hand", "right_hand", "left_forearm", "right_forearm",
                 "left_foot", "right_foot"}  # walking.csv has no knee trackers
 

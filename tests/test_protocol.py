@@ -51,7 +51,9 @@ from posecast.protocol.validation import (
     QUAT_NORM_TOLERANCE,
     device_poses,
 )
-from posecast.solver.motion import DRIVING_DEVICES, VIVE_DEVICES
+from posecast.solver.calibration import CALIBRATION_DEVICES
+from posecast.solver.motion import VIVE_DEVICES
+from posecast.solver.tracking.devices import DEVICES
 
 RNG = np.random.default_rng(7)
 
@@ -65,9 +67,11 @@ def poses(n: int) -> NDArray[np.float64]:
     return np.concatenate([RNG.uniform(-2, 2, (n, 3)), unit_quaternions(n)], axis=1)
 
 
+SIX = ("head", "hip", "left_hand", "right_hand", "left_foot", "right_foot")
+
+
 def tpose() -> Calibrate:
-    return Calibrate(roles=CALIBRATION_ROLES, poses=poses(6), t_capture=10.0,
-                     clock_offset=0.5)
+    return Calibrate(roles=SIX, poses=poses(6), t_capture=10.0, clock_offset=0.5)
 
 
 def skeleton_info(avatar_id: int = 3) -> AvatarInfo:
@@ -96,7 +100,8 @@ def rejects(data: bytes, *fragments: str, code: str = ErrorCode.INVALID,
 # --------------------------------------------------------------------------- vocabulary
 def test_device_roles_are_the_solver_devices() -> None:
     assert DEVICE_ROLES == VIVE_DEVICES
-    assert set(CALIBRATION_ROLES) == set(DRIVING_DEVICES)
+    assert set(DEVICE_ROLES) == set(DEVICES)
+    assert CALIBRATION_ROLES == CALIBRATION_DEVICES
 
 
 def test_every_message_type_is_registered_once() -> None:
@@ -129,7 +134,7 @@ def test_scalar_messages_round_trip_exactly(message: BaseModel) -> None:
 
 def test_tracker_frame_round_trips_exactly() -> None:
     frame = TrackerFrame(seq=2**40, t_capture=1.7e9 + 1e-6, clock_offset=-0.25,
-                         roles=DEVICE_ROLES, poses=poses(10))
+                         roles=DEVICE_ROLES, poses=poses(len(DEVICE_ROLES)))
     back = decode_client(encode(frame))
     assert isinstance(back, TrackerFrame)
     assert (back.seq, back.t_capture, back.clock_offset, back.roles) == (
@@ -350,7 +355,8 @@ def test_unknown_message_type() -> None:
 
 
 def test_server_messages_are_not_client_messages() -> None:
-    data = encode(Welcome(protocol_version=1, connection_id=1, avatar_id=1, server_time=0.0))
+    data = encode(Welcome(protocol_version=PROTOCOL_VERSION, connection_id=1, avatar_id=1,
+                          server_time=0.0))
     rejects(data, "unknown message type 'welcome'", code=ErrorCode.UNKNOWN_TYPE)
     assert isinstance(decode(data), Welcome)
 
@@ -364,10 +370,15 @@ def test_huge_frame_is_rejected_before_parsing() -> None:
 
 
 def test_unknown_protocol_version() -> None:
-    hello = wire(Hello(protocol_version=1, role="player", room="r", display_name="a"))
+    hello = wire(Hello(protocol_version=PROTOCOL_VERSION, role="player", room="r",
+                       display_name="a"))
     rejects(msgpack.packb({**hello, "protocol_version": 99}), "hello.protocol_version",
-            "version 99 is not supported", "[1]", code=ErrorCode.UNSUPPORTED_VERSION)
-    welcome = wire(Welcome(protocol_version=1, connection_id=1, avatar_id=None,
+            "version 99 is not supported", f"[{PROTOCOL_VERSION}]",
+            code=ErrorCode.UNSUPPORTED_VERSION)
+    # a version-1 peer (no tracker sets) is told so, not misread
+    rejects(msgpack.packb({**hello, "protocol_version": 1}), "version 1 is not supported",
+            code=ErrorCode.UNSUPPORTED_VERSION)
+    welcome = wire(Welcome(protocol_version=PROTOCOL_VERSION, connection_id=1, avatar_id=None,
                            server_time=0.0))
     rejects(msgpack.packb({**welcome, "protocol_version": 0}), "welcome.protocol_version",
             code=ErrorCode.UNSUPPORTED_VERSION, client=False)
@@ -393,15 +404,15 @@ def test_wrong_types_name_the_field_and_value() -> None:
 
 def test_nan_and_infinity_name_the_device() -> None:
     frame = wire(sample_tracker_frame())
-    p = np.frombuffer(frame["poses"], "<f8").reshape(10, 7).copy()
+    p = np.frombuffer(frame["poses"], "<f8").reshape(-1, 7).copy()
     p[2, 0] = np.nan
     rejects(msgpack.packb({**frame, "poses": p.tobytes()}), "tracker_frame.poses",
             "row 2 (left_hand) position[0] is nan")
-    p = np.frombuffer(frame["poses"], "<f8").reshape(10, 7).copy()
+    p = np.frombuffer(frame["poses"], "<f8").reshape(-1, 7).copy()
     p[7, 4] = np.inf
     rejects(msgpack.packb({**frame, "poses": p.tobytes()}), "tracker_frame.poses",
             "row 7 (right_foot) quaternion[1] is inf")
-    p = np.frombuffer(frame["poses"], "<f8").reshape(10, 7).copy()
+    p = np.frombuffer(frame["poses"], "<f8").reshape(-1, 7).copy()
     p[9, 6] = np.nan
     rejects(msgpack.packb({**frame, "poses": p.tobytes()}), "tracker_frame.poses",
             "row 9 (right_knee) quaternion[3] is nan")
@@ -413,7 +424,7 @@ def test_nan_and_infinity_name_the_device() -> None:
 
 def test_non_unit_quaternion_names_the_device_and_norm() -> None:
     frame = wire(sample_tracker_frame())
-    p = np.frombuffer(frame["poses"], "<f8").reshape(10, 7).copy()
+    p = np.frombuffer(frame["poses"], "<f8").reshape(-1, 7).copy()
     p[3, 3:] *= 1.01
     rejects(msgpack.packb({**frame, "poses": p.tobytes()}), "tracker_frame.poses",
             "row 3 (right_hand) quaternion", "norm 1.01", "within 0.001")
@@ -456,7 +467,7 @@ def test_device_poses_follow_their_definition(rows: list[list[float]], unit: boo
 
 def test_positions_beyond_the_limit() -> None:
     frame = wire(sample_tracker_frame())
-    p = np.frombuffer(frame["poses"], "<f8").reshape(10, 7).copy()
+    p = np.frombuffer(frame["poses"], "<f8").reshape(-1, 7).copy()
     p[0, :3] = [1e300, 0, 0]
     rejects(msgpack.packb({**frame, "poses": p.tobytes()}), "tracker_frame.poses",
             "row 0 (head) position", "1e+300 m from the origin", "limit is 1000 m")
@@ -473,21 +484,25 @@ def test_device_roles_are_checked() -> None:
     rejects(msgpack.packb({**frame, "roles": [], "poses": b""}), "tracker_frame.roles",
             "at least 1")
     rejects(msgpack.packb({**frame, "roles": [*DEVICE_ROLES, "head"]}),
-            "tracker_frame.roles", "at most 10")
+            "tracker_frame.roles", "at most 11")
     rejects(msgpack.packb({**frame, "poses": frame["poses"][:-8]}), "tracker_frame.poses",
             "104 bytes is not a whole number of rows of 7 x <f8 (56 bytes)")
 
 
-def test_calibration_needs_head_hip_hands_and_feet() -> None:
+def test_calibration_needs_head_and_hands_and_takes_any_more() -> None:
     message = wire(tpose())
     p = np.frombuffer(message["poses"], "<f8").reshape(6, 7)
-    rejects(msgpack.packb({**message, "roles": list(CALIBRATION_ROLES[:4]),
-                           "poses": p[:4].tobytes()}),
-            "calibrate", "missing left_foot, right_foot")
+    rejects(msgpack.packb({**message, "roles": ["head", "hip", "right_hand"],
+                           "poses": p[[0, 1, 3]].tobytes()}),
+            "calibrate", "missing left_hand")
+    three = decode_client(msgpack.packb({**message, "roles": list(CALIBRATION_ROLES),
+                                         "poses": p[[0, 2, 3]].tobytes()}))
+    assert isinstance(three, Calibrate) and three.roles == CALIBRATION_ROLES
 
 
 def test_hello_fields_are_checked() -> None:
-    hello = wire(Hello(protocol_version=1, role="spectator", room="r", display_name="a"))
+    hello = wire(Hello(protocol_version=PROTOCOL_VERSION, role="spectator", room="r",
+                       display_name="a"))
     rejects(msgpack.packb({**hello, "role": "god"}), "hello.role", "'god'")
     rejects(msgpack.packb({**hello, "room": "my room"}), "hello.room", "'my room'")
     rejects(msgpack.packb({**hello, "display_name": "x" * 65}), "hello.display_name",
@@ -659,7 +674,7 @@ def test_error_message_round_trips_a_protocol_error() -> None:
 
 # --------------------------------------------------------------------------- fuzzing
 GOOD = [encode(sample_tracker_frame()), encode(tpose()),
-        encode(Hello(protocol_version=1, role="player", room="r", display_name="a")),
+        encode(Hello(protocol_version=PROTOCOL_VERSION, role="player", room="r", display_name="a")),
         encode(sample_avatar_batch(2, 3)), encode(AvatarRoster(avatars=(skeleton_info(),)))]
 
 

@@ -109,6 +109,7 @@ def test_an_avatar_the_helper_never_finishes_is_taken_over(session: Session,
                np.zeros(N, dtype=np.int64))
         args = shared._analytic_args()
         rows[:N] = np.arange(N)
+        shared.tracking.fill(np.arange(N))  # the targets, as solve_staged makes them
         taken: list[int] = []
         thief = threading.Thread(target=lambda: taken.append(_take_one_and_vanish(control)))
         thief.start()

@@ -26,6 +26,7 @@ from posecast.client.demo import HEADSET_HZ
 from posecast.client.player import Player
 from posecast.client.skeletons import skeleton_of
 from posecast.client.sources.bvh_source import BvhSource
+from posecast.client.sources.tracker_set import TrackerSetSource
 from posecast.client.viewer.bench import Clip
 from posecast.client.vmc import (
     VmcError,
@@ -42,6 +43,7 @@ from posecast.solver.readers.bvh import read_bvh
 from posecast.solver.readers.gltf import load_makehuman
 from posecast.solver.rig import canonical_pose, global_pose
 from posecast.solver.skeleton import Skeleton
+from posecast.solver.tracking.devices import PRESETS
 
 X, Y, Z = np.eye(3)
 S45 = np.sin(np.pi / 4)
@@ -273,7 +275,10 @@ def with_player(session: Session, test: Callable[[str, Player], Awaitable[None]]
     a headset's 90 Hz, for the length of ``test(url, player)``."""
     async def main() -> None:
         async with serving(session) as url:
-            source = BvhSource(builtin_motion_path(), loop=True, rate_hz=HEADSET_HZ)
+            # the six driving devices: the thigh's swing is then the walk's, not the
+            # simulated knee tracker's steering (which this test is not about)
+            source = TrackerSetSource(BvhSource(builtin_motion_path(), loop=True,
+                                                rate_hz=HEADSET_HZ), PRESETS["6"])
             player = Player(url, "stage", "ana", source)
             stop = asyncio.Event()
             playing = asyncio.create_task(player.run(stop=stop))

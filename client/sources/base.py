@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 
 # device roles, as the protocol and DESIGN.md spell them
 ROLES = ("head", "hip", "left_hand", "right_hand", "left_forearm", "right_forearm",
-         "left_foot", "right_foot", "left_knee", "right_knee")
+         "left_foot", "right_foot", "left_knee", "right_knee", "chest")
 
 
 def now() -> float:

@@ -25,7 +25,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from posecast.client.sources.base import ROLES, DeviceSample, SourceError, now
+from posecast.client.sources.base import ROLES as ALL_ROLES
+from posecast.client.sources.base import DeviceSample, SourceError, now
 from posecast.solver import rotations as R
 from posecast.solver.calibration import EFFECTOR_DEVICES, EYE_FROM_HEAD_JOINT
 from posecast.solver.evaluation import _reference_pose
@@ -45,6 +46,9 @@ DEVICE_JOINTS: dict[str, tuple[str, str | None]] = {
     "left_knee": ("shin_l", None), "right_knee": ("shin_r", None),
 }
 FOREARM_AT = 0.5  # fraction of the way from elbow to wrist
+# the devices simulated: a full Vive rig (head, controllers, the seven tracker roles of
+# the paper authors' recordings); a chest tracker is rare, eval simulates it on request
+ROLES = tuple(r for r in ALL_ROLES if r != "chest")
 
 
 class BvhSource:

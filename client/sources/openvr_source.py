@@ -11,6 +11,12 @@ A TOML file may override any device by serial number::
 
 Poses are read in SteamVR's standing universe (metres, +y up, floor at y=0), which is the
 frame of the Vive recordings and of every DeviceSample.
+
+A device that is not tracked is left out of the frame, and the server carries it on
+(``solver.tracking``). ``Running_OutOfRange`` (the base stations lost it; SteamVR
+dead-reckons from the IMU) counts as tracked for OUT_OF_RANGE_S after it was last
+``Running_OK``, then as lost: integrated accelerometer positions drift by centimetres
+within a few tenths of a second, further than the server's carry-on does.
 """
 
 from __future__ import annotations
@@ -29,11 +35,13 @@ from numpy.typing import NDArray
 
 from posecast.client.sources.base import ROLES, DeviceSample, SourceError, now
 from posecast.solver import rotations as R
-from posecast.solver.motion import DRIVING_DEVICES
+from posecast.solver.calibration import CALIBRATION_DEVICES
 
 DEFAULT_RATE_HZ = 90.0  # Vive and Vive Pro run at 90 Hz; used when the HMD does not say
 RESCAN_SECONDS = 1.0  # re-read device roles this often, besides on device events
 CALIBRATION_TIMEOUT = 30.0  # seconds to wait for every calibration device to be tracked
+# how long (s) an IMU-only pose (Running_OutOfRange) is still sent, after Running_OK
+OUT_OF_RANGE_S = 0.1
 
 # SteamVR tracker roles as OpenVR reports them (Prop_ControllerType_String, lower-cased:
 # some drivers write e.g. "vive_tracker_left_Shoulder")
@@ -42,6 +50,7 @@ TRACKER_ROLES = {
     "vive_tracker_left_foot": "left_foot", "vive_tracker_right_foot": "right_foot",
     "vive_tracker_left_knee": "left_knee", "vive_tracker_right_knee": "right_knee",
     "vive_tracker_left_elbow": "left_forearm", "vive_tracker_right_elbow": "right_forearm",
+    "vive_tracker_chest": "chest",
 }
 HANDED_TRACKER = "vive_tracker_handed"  # "held in hand": its controller role says which
 HAND_ROLES = {openvr.TrackedControllerRole_LeftHand: "left_hand",
@@ -131,6 +140,8 @@ class OpenVRSource:
         self._indices = np.zeros(0, dtype=np.intp)
         self._next_scan = 0.0
         self._ended = False
+        # when each device index was last Running_OK (for Running_OutOfRange)
+        self._last_ok = np.full(openvr.k_unMaxTrackedDeviceCount, -np.inf)
         self.rate_hz = self._display_rate()
         self.rescan()
 
@@ -210,20 +221,25 @@ class OpenVRSource:
                                                     self._poses)
         t = now()  # the capture instant: right after the poses were taken
         sel = self._view[self._indices]
-        ok = ((sel["valid"] != 0) & (sel["connected"] != 0)
-              & (sel["result"] == openvr.TrackingResult_Running_OK))
+        valid = (sel["valid"] != 0) & (sel["connected"] != 0)
+        running = valid & (sel["result"] == openvr.TrackingResult_Running_OK)
+        self._last_ok[self._indices[running]] = t
+        imu_only = valid & (sel["result"] == openvr.TrackingResult_Running_OutOfRange)
+        ok = running | (imu_only & (t - self._last_ok[self._indices] <= OUT_OF_RANGE_S))
         pos, rot = poses_from_matrices(sel["m"][ok])
         roles = tuple(r for r, keep in zip(self._roles, ok, strict=True) if keep)
         return DeviceSample.of(t, roles, pos, rot)
 
     def calibration(self) -> DeviceSample:
-        """The current sample, once head, hip, hands and feet are all tracked."""
+        """The current sample, once the head and both hands are tracked: every device
+        tracked then is calibrated (those switched on later are mounted when they
+        appear)."""
         deadline = time.monotonic() + self.calibration_timeout
         while True:
             sample = self.read()
             if sample is None:
                 raise SourceError("SteamVR quit before calibration")
-            missing = [r for r in DRIVING_DEVICES if r not in sample.roles]
+            missing = [r for r in CALIBRATION_DEVICES if r not in sample.roles]
             if not missing:
                 return sample
             if time.monotonic() >= deadline:

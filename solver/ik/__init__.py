@@ -1,7 +1,8 @@
 """Inverse kinematics: solve B avatars in one call, by solver name.
 
-    state = PoseBatch.rest(rig, B)
-    solve(solver, targets, state)       # targets: (B, 6, 7) in rig.EFFECTORS order
+    state = PoseBatch.canonical(rig, B)
+    Solver(rig).solve(targets, state)   # targets: (B, 6 or more, 7), slot order of
+                                        # solver.tracking.devices; weights (B, ND)
 
 Solvers (one file each): ``analytic`` (the default: closed-form limbs and spine plus a
 short refinement), ``dls`` (damped least squares over whole chains) and ``paper`` (the
@@ -26,6 +27,8 @@ from posecast.solver.ik.chains import ChainArrays, chain_arrays
 from posecast.solver.ik.dls import solve_dls_batch
 from posecast.solver.ik.paper import solve_paper_batch
 from posecast.solver.rig import Rig
+from posecast.solver.tracking.devices import MAIN
+from posecast.solver.tracking.layout import ND
 
 # numba's OpenMP workers spin after each parallel solve, by default for milliseconds: a
 # server solving once a frame would keep a core busy for nothing, and a spinning worker
@@ -99,30 +102,36 @@ class Solver:
         self.arrays: ChainArrays = chain_arrays(rig)
 
     def analytic_args(self, offsets: NDArray[np.float64], targets: NDArray[np.float64],
-                      rotations: NDArray[np.float64], root: NDArray[np.float64],
-                      iterations: NDArray[np.int64]) -> tuple[object, ...]:
+                      weights: NDArray[np.float64], rotations: NDArray[np.float64],
+                      root: NDArray[np.float64], iterations: NDArray[np.int64]
+                      ) -> tuple[object, ...]:
         """The analytic solver's arguments over arrays of avatars (offsets (B or 1, J, 3),
-        targets (B, 6, 7), rotations (B, J, 4), root (B, 3), iterations (B,)), as
-        ``solve_analytic_batch`` and ``solver.ik.shared`` take them."""
+        targets (B, ND, 7), weights (B, ND), rotations (B, J, 4), root (B, 3), iterations
+        (B,)), as ``solve_analytic_batch`` and ``solver.ik.shared`` take them."""
         if self.name != "analytic":
             raise ValueError(f"not the analytic solver: {self.name}")
         a, o = self.arrays, self.options
         return (a.parents, offsets, a.canonical, a.pre, a.post, a.lo, a.hi, a.dofmask,
-                a.pelvis, a.chains, a.lengths, targets, rotations, root, o.rotation_weight,
-                self.damping, self.max_iterations, o.epsilon, iterations)
+                a.pelvis, a.chains, a.lengths, targets, weights, rotations, root,
+                o.rotation_weight, self.damping, self.max_iterations, o.epsilon, iterations)
 
     def solve(self, targets: NDArray[np.float64], state: PoseBatch,
-              offsets: NDArray[np.float64] | None = None) -> None:
-        """Solve every avatar of the batch towards its targets (B, 6, 7), in place.
-        ``offsets`` (B, J, 3) gives each avatar's bone lengths; default: the rig's."""
+              offsets: NDArray[np.float64] | None = None,
+              weights: NDArray[np.float64] | None = None) -> None:
+        """Solve every avatar of the batch towards its targets, in place: (B, 6, 7), the
+        body's six (rig.EFFECTORS), or (B, ND, 7) with ``weights`` (B, ND) for the
+        elbow, knee and chest trackers that steer the analytic solver (the others use
+        the six). ``offsets`` (B, J, 3) gives each avatar's bone lengths; default: the
+        rig's."""
         a = self.arrays
         if offsets is None:
             offsets = self.rig.skeleton.offsets[None]
+        targets, weights = _slots(targets, weights)
         o = self.options
         serial = numba.get_num_threads() == 1  # see PARALLEL_MIN_AVATARS
         if self.name == "analytic":
-            args = self.analytic_args(offsets, targets, state.rotations, state.root,
-                                      state.iterations)
+            args = self.analytic_args(offsets, targets, weights, state.rotations,
+                                      state.root, state.iterations)
             # (mypy reads the compiled dispatcher's call as fixed-arity)
             solve_analytic_batch(*args, serial)  # type: ignore[call-arg]
         elif self.name == "dls":
@@ -136,3 +145,19 @@ class Solver:
                               state.rotations, state.root, self.damping,
                               self.max_iterations, o.epsilon, self.step_limit,
                               state.iterations, serial)
+
+
+def _slots(targets: NDArray[np.float64], weights: NDArray[np.float64] | None
+           ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Targets and weights in every slot: six targets alone steer nothing."""
+    if targets.shape[1] == ND and weights is not None:
+        return targets, weights
+    full = np.zeros((targets.shape[0], ND, 7))
+    full[:, :, 6] = 1.0
+    full[:, :MAIN] = targets[:, :MAIN]
+    out = np.zeros((targets.shape[0], ND))
+    out[:, :MAIN] = 1.0
+    if weights is not None:
+        out[:, MAIN:targets.shape[1]] = weights[:, MAIN:targets.shape[1]]
+        full[:, MAIN:targets.shape[1]] = targets[:, MAIN:]
+    return full, out

@@ -42,6 +42,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from posecast.solver.calibration import FOREARM_TWIST_SHARE, KNEE_BEND_SHARE
 from posecast.solver.kernels import (
     PARALLEL_MIN_AVATARS,
     Quat,
@@ -66,6 +67,10 @@ from posecast.solver.kernels import (
     tnormalize,
     trotate,
 )
+from posecast.solver.tracking.devices import CHEST as STEER_CHEST
+from posecast.solver.tracking.devices import ELBOW_L as STEER_ELBOW
+from posecast.solver.tracking.devices import KNEE_L as STEER_KNEE
+from posecast.solver.tracking.poses import nlerp
 
 # share of the arm's turn away from the T-pose that the clavicle takes: in the mocap the
 # clavicles stay within ~5 deg of neutral, and a share dropped the shoulder with the arms
@@ -154,13 +159,18 @@ def _spread(parents, q, gq, canon, pre, post, lo, hi, chain, first, n, tq):
 
 @njit(cache=True)
 def solve_spine(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, chain, n, nt,
-                target):
+                target, chest, chest_w, qsave):
     """The spine chain (pelvis's child .. head, n joints): chain[:nt] is the torso (up to
-    the chest), chain[nt:n - 1] the neck."""
+    the chest), chain[nt:n - 1] the neck. A chest tracker (``chest``, weight ``chest_w``
+    > 0) turns the torso towards its rotation, that share of the way."""
     head = chain[n - 1]
     tq = (target[3], target[4], target[5], target[6])
     _spread(parents, q, gq, canon, pre, post, lo, hi, chain, 0, n, tq)
     fk_joints(parents, offsets, q, gq, gp, chain, n)
+    if chest_w > 0.0:
+        _steer_torso(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, chain, n, nt,
+                     tq, chest, chest_w, qsave)
+        return
     base = chain[nt]  # the neck's base (the head itself on a rig without a neck)
     g = tq
     for r in range(NECK_ROUNDS):
@@ -187,6 +197,27 @@ def solve_spine(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, chain, n,
         clamp_joint_at(q, base, pre, post, lo, hi)
         fk_joints(parents, offsets, q, gq, gp, chain[nt:], n - nt)
     set_effector_rotation(parents, q, gq, pre, post, lo, hi, head, target)
+
+
+@njit(cache=True)
+def _steer_torso(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, chain, n, nt, tq,
+                 chest, w, qsave):
+    """The torso turned to the chest tracker's rotation (share w of the way from the
+    head's spread), the neck and head taking the rest of the head's turn."""
+    for i in range(nt):
+        j = chain[i]
+        for k in range(4):
+            qsave[j, k] = q[j, k]
+    _spread(parents, q, gq, canon, pre, post, lo, hi, chain, 0, nt,
+            (chest[3], chest[4], chest[5], chest[6]))
+    for i in range(nt):
+        j = chain[i]
+        set_row4(q, j, nlerp(row4(qsave, j), row4(q, j), w))
+    fk_joints(parents, offsets, q, gq, gp, chain, nt)
+    _spread(parents, q, gq, canon, pre, post, lo, hi, chain, nt, n, tq)
+    fk_joints(parents, offsets, q, gq, gp, chain, n)
+    set_effector_rotation(parents, q, gq, pre, post, lo, hi, chain[n - 1],
+                          (0.0, 0.0, 0.0, tq[0], tq[1], tq[2], tq[3]))
 
 
 @njit(cache=True)
@@ -370,10 +401,36 @@ def _swivel_within_limits(parents, offsets, q, gq, gp, pre, post, lo, hi, upper,
 
 
 @njit(cache=True)
+def _steered(Gu, offsets, pre, post, mid, theta, tau_prev, steer, gp, upper, nx, ny, nz,
+             psi, arm):
+    """How far (radians) to turn the aimed limb about the upper-end line, from ``psi``,
+    to bring an elbow or knee tracker where it is seen: ``steer`` holds its position and
+    its mount (position in the mid bone's frame). Its position is compared, not the joint
+    it implies: the mount's rotation follows the skin, and a joint inferred through it
+    lay off the limb's line by more than the swivel's own error. The mount frame turns
+    with the hinge (an elbow tracker with part of the forearm's last twist, a knee tracker
+    with part of the knee's bend, as calibration models them)."""
+    if arm:
+        frame = composed(row4(pre, mid), row4(post, mid), theta,
+                         FOREARM_TWIST_SHARE * tau_prev, 0.0)
+    else:
+        frame = composed(row4(pre, mid), row4(post, mid), KNEE_BEND_SHARE * theta, 0.0, 0.0)
+    E = trotate(Gu, row3(offsets, mid))
+    m = trotate(tmul(Gu, frame), (steer[3], steer[4], steer[5]))
+    P = (E[0] + m[0], E[1] + m[1], E[2] + m[2])
+    to = (steer[0] - gp[upper, 0], steer[1] - gp[upper, 1], steer[2] - gp[upper, 2])
+    d = _perp_angle(P[0], P[1], P[2], to[0], to[1], to[2], nx, ny, nz) - psi
+    return math.atan2(math.sin(d), math.cos(d))
+
+
+@njit(cache=True)
 def solve_limb(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, upper, mid, end,
-               target, twist_in_mid):
+               target, twist_in_mid, steer, steer_w):
     """Two-bone limb: upper (upper arm / thigh), mid (forearm / shin, hinge about its limit
-    x axis, with a twist about the bone when twist_in_mid), end (hand / foot)."""
+    x axis, with a twist about the bone when twist_in_mid), end (hand / foot). An elbow
+    or knee tracker (``steer``: its position and its mount on the mid bone, weight
+    ``steer_w`` > 0) turns the limb about the upper-end line towards it, that share of the
+    way (``_steered``)."""
     tq = (target[3], target[4], target[5], target[6])
     dvec = (target[0] - gp[upper, 0], target[1] - gp[upper, 1], target[2] - gp[upper, 2])
     dist = math.sqrt(dvec[0] ** 2 + dvec[1] ** 2 + dvec[2] ** 2)
@@ -415,6 +472,9 @@ def solve_limb(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, upper, mid
         # people keep their elbows low: turn a bent arm's elbow part of the way down
         if wb > 0.0:
             psi -= ELBOW_DOWN_SHARE * wb * _below(Gu, offsets, mid, psi, nx, ny, nz)
+    if steer_w > 0.0:
+        psi += steer_w * _steered(Gu, offsets, pre, post, mid, theta, tau_prev, steer, gp,
+                                  upper, nx, ny, nz, psi, twist_in_mid)
     short = abs(dist - math.sqrt(w[0] ** 2 + w[1] ** 2 + w[2] ** 2))
     _swivel_within_limits(parents, offsets, q, gq, gp, pre, post, lo, hi, upper, mid, end,
                           dvec, Gu, nx, ny, nz, psi, short)
@@ -536,24 +596,26 @@ def _neck_start(parents, chains):
 
 @njit(cache=True)
 def solve_analytic_one(parents, off, canon, pre, post, lo, hi, dofmask, pelvis, chains,
-                       lengths, tg, qb, rootb, w_rot, lam, refine, eps, work):
-    """One avatar (its bone offsets, targets, pose and root), in place; returns the
-    refinement's iterations. ``work``: from ``analytic_work``."""
+                       lengths, tg, w, qb, rootb, w_rot, lam, refine, eps, work):
+    """One avatar (its bone offsets, targets (ND, 7) and weights (ND,) in the slot order
+    of ``solver.tracking.devices``, pose and root), in place; returns the refinement's
+    iterations. ``work``: from ``analytic_work``."""
     gq, gp, scratch, upper, effs, slots, tree, qsave = work
     place_root(parents, off, qb, rootb, gq, gp, pelvis, tg[1])
     solve_spine(parents, off, qb, gq, gp, canon, pre, post, lo, hi, chains[0],
-                lengths[0], _neck_start(parents, chains), tg[0])
+                lengths[0], _neck_start(parents, chains), tg[0], tg[STEER_CHEST],
+                w[STEER_CHEST], qsave)
     for c in (1, 2):  # arms: clavicle, upper arm, forearm, hand
         ch = chains[c]
         aim_clavicle(parents, off, qb, gq, gp, canon, pre, post, lo, hi, ch[0], ch[1],
                      ch[2], ch[3], tg[c + 1], CLAVICLE_SHARE)
         solve_limb(parents, off, qb, gq, gp, canon, pre, post, lo, hi, ch[1], ch[2],
-                   ch[3], tg[c + 1], True)
+                   ch[3], tg[c + 1], True, tg[STEER_ELBOW + c - 1], w[STEER_ELBOW + c - 1])
     for c in (3, 4):  # legs: thigh, shin, foot
         ch = chains[c]
         fk_joints(parents, off, qb, gq, gp, ch, 1)
         solve_limb(parents, off, qb, gq, gp, canon, pre, post, lo, hi, ch[0], ch[1],
-                   ch[2], tg[c + 1], False)
+                   ch[2], tg[c + 1], False, tg[STEER_KNEE + c - 3], w[STEER_KNEE + c - 3])
     total = 0
     if refine > 0:
         for c in range(chains.shape[0]):
@@ -570,32 +632,32 @@ def solve_analytic_one(parents, off, canon, pre, post, lo, hi, dofmask, pelvis, 
 
 @njit(cache=True)
 def solve_analytic_range(parents, offsets, canon, pre, post, lo, hi, dofmask, pelvis,
-                         chains, lengths, targets, q, root, w_rot, lam, refine, eps,
-                         iterations, first, last):
+                         chains, lengths, targets, weights, q, root, w_rot, lam, refine,
+                         eps, iterations, first, last):
     """Avatars first..last-1 of the batch, one after the other."""
     shared = offsets.shape[0] == 1
     work = analytic_work(q.shape[1], chains, lengths)
     for b in range(first, last):
         iterations[b] = solve_analytic_one(
             parents, offsets[0] if shared else offsets[b], canon, pre, post, lo, hi,
-            dofmask, pelvis, chains, lengths, targets[b], q[b], root[b], w_rot, lam,
-            refine, eps, work)
+            dofmask, pelvis, chains, lengths, targets[b], weights[b], q[b], root[b], w_rot,
+            lam, refine, eps, work)
 
 
 @njit(cache=True, parallel=True)
 def solve_analytic_batch(parents, offsets, canon, pre, post, lo, hi, dofmask, pelvis,
-                         chains, lengths, targets, q, root, w_rot, lam, refine, eps,
+                         chains, lengths, targets, weights, q, root, w_rot, lam, refine, eps,
                          iterations, serial):
     # avatars are independent: spread over the cores (see PARALLEL_MIN_AVATARS); the
     # bounds are int64 in both calls so that they share one compiled version
     B = q.shape[0]
     if serial or B < PARALLEL_MIN_AVATARS:
         solve_analytic_range(parents, offsets, canon, pre, post, lo, hi, dofmask, pelvis,
-                             chains, lengths, targets, q, root, w_rot, lam, refine, eps,
-                             iterations, np.int64(0), B)
+                             chains, lengths, targets, weights, q, root, w_rot, lam, refine,
+                             eps, iterations, np.int64(0), B)
     else:
         for b in prange(B):
             first = np.int64(b)
             solve_analytic_range(parents, offsets, canon, pre, post, lo, hi, dofmask,
-                                 pelvis, chains, lengths, targets, q, root, w_rot, lam,
-                                 refine, eps, iterations, first, first + 1)
+                                 pelvis, chains, lengths, targets, weights, q, root, w_rot,
+                                 lam, refine, eps, iterations, first, first + 1)

@@ -75,7 +75,7 @@ def _count_done(control, seq):
 @njit(cache=True, nogil=True)
 def analytic_helper(control, rows, state, out_q, out_root, out_it, parents, offsets,
                     canon, pre, post, lo, hi, dofmask, pelvis, chains, lengths, targets,
-                    q, root, w_rot, lam, refine, eps, iterations):
+                    weights, q, root, w_rot, lam, refine, eps, iterations):
     """The helper's loop, until STOP: claim an avatar, solve it into its own rows, mark
     it done unless the caller took it over; spin while there is nothing to claim.
     Returns the avatars whose results it handed over."""
@@ -95,7 +95,8 @@ def analytic_helper(control, rows, state, out_q, out_root, out_it, parents, offs
         out_root[i] = root[b]
         out_it[i] = solve_analytic_one(
             parents, offsets[b], canon, pre, post, lo, hi, dofmask, pelvis, chains,
-            lengths, targets[b], out_q[i], out_root[i], w_rot, lam, refine, eps, work)
+            lengths, targets[b], weights[b], out_q[i], out_root[i], w_rot, lam, refine, eps,
+            work)
         if atomic_cas(state, i, before, (seq << 2) | HELPER):
             _count_done(control, seq)
             handed += 1
@@ -104,19 +105,20 @@ def analytic_helper(control, rows, state, out_q, out_root, out_it, parents, offs
 
 @njit(cache=True, nogil=True)
 def _solve_here(i, rows, parents, offsets, canon, pre, post, lo, hi, dofmask, pelvis,
-                chains, lengths, targets, q, root, w_rot, lam, refine, eps, iterations,
-                work):
+                chains, lengths, targets, weights, q, root, w_rot, lam, refine, eps,
+                iterations, work):
     """The caller solves avatar i of the batch in place."""
     b = rows[i]
     iterations[b] = solve_analytic_one(
         parents, offsets[b], canon, pre, post, lo, hi, dofmask, pelvis, chains, lengths,
-        targets[b], q[b], root[b], w_rot, lam, refine, eps, work)
+        targets[b], weights[b], q[b], root[b], w_rot, lam, refine, eps, work)
 
 
 @njit(cache=True, nogil=True)
 def solve_analytic_shared(control, rows, n, state, out_q, out_root, out_it, parents,
                           offsets, canon, pre, post, lo, hi, dofmask, pelvis, chains,
-                          lengths, targets, q, root, w_rot, lam, refine, eps, iterations):
+                          lengths, targets, weights, q, root, w_rot, lam, refine, eps,
+                          iterations):
     """Post the avatars rows[:n] (rows of the arrays the helper was given), solve them
     with the helper, return when all are solved and in place. Returns how many the
     helper solved."""
@@ -132,7 +134,7 @@ def solve_analytic_shared(control, rows, n, state, out_q, out_root, out_it, pare
         if i < 0:
             break
         _solve_here(i, rows, parents, offsets, canon, pre, post, lo, hi, dofmask, pelvis,
-                    chains, lengths, targets, q, root, w_rot, lam, refine, eps,
+                    chains, lengths, targets, weights, q, root, w_rot, lam, refine, eps,
                     iterations, work)
         atomic_store(state, i, mine)
         _count_done(control, seq)
@@ -147,8 +149,8 @@ def solve_analytic_shared(control, rows, n, state, out_q, out_root, out_it, pare
                 s = atomic_load(state, i)
                 if s != mine and s != theirs and atomic_cas(state, i, s, mine):
                     _solve_here(i, rows, parents, offsets, canon, pre, post, lo, hi,
-                                dofmask, pelvis, chains, lengths, targets, q, root, w_rot,
-                                lam, refine, eps, iterations, work)
+                                dofmask, pelvis, chains, lengths, targets, weights, q, root,
+                                w_rot, lam, refine, eps, iterations, work)
             break
     helped = 0
     for i in range(n):

@@ -28,7 +28,8 @@ HEADER = ("tag", "rawPosX", "rawPosY", "rawPosZ", "rawRotX", "rawRotY", "rawRotZ
           "scale")
 TAGS = {"head": "head", "hip": "hip", "lHand": "left_hand", "rHand": "right_hand",
         "lForeArm": "left_forearm", "rForeArm": "right_forearm", "lFoot": "left_foot",
-        "rFoot": "right_foot", "lKnee": "left_knee", "rKnee": "right_knee"}
+        "rFoot": "right_foot", "lKnee": "left_knee", "rKnee": "right_knee",
+        "chest": "chest"}
 FRAME_START = "head"
 QUAT_TOLERANCE = 0.05  # |norm - 1| above this is not a rounding error but a broken value
 FIRST_BODY_LINE = 2  # row 0 of the table is line 2 of the file (line 1 is the header)
@@ -199,7 +200,7 @@ def _recording(src: str, first: list[str], values: NDArray[np.float64]) -> ViveR
 
 # file order of the paper authors' recordings: each hand before its forearm
 FILE_ORDER = ("head", "hip", "lHand", "lForeArm", "rHand", "rForeArm", "lFoot", "rFoot",
-              "lKnee", "rKnee")
+              "lKnee", "rKnee", "chest")
 
 
 def file_tags(devices: tuple[str, ...]) -> list[str]:

@@ -1,0 +1,75 @@
+"""The body model's pelvis when no hip tracker says where it is: under the head, the
+torso leaning back as the head drops (a squat, sitting down), turned to a heading that
+follows the head's without its quick glances."""
+
+from __future__ import annotations
+
+import math
+
+from numba import njit
+
+from posecast.solver.kernels import taxis_angle, tconj, tmul, trotate
+from posecast.solver.tracking.layout import (
+    K_PEL_ADAPT,
+    K_PEL_YAW,
+    S_G0_HEAD,
+    S_G0_PELVIS,
+    S_HEAD_TO_PELVIS,
+    S_NAIVE,
+    S_STAND_HEAD,
+)
+from posecast.solver.tracking.poses import add, heading, read3, read4, wrap, yaw_quat
+
+# How fast (1/s) the pelvis's heading follows the head's: a glance over the shoulder
+# turns the head, not the hips.
+YAW_RATE = 20.0
+# How far (m) the pelvis moves back, per metre the head is below its standing height:
+# squatting and sitting down push the hips back while the head stays over the feet.
+DROP_BACK = 0.5
+# the most the torso leans (share of its length the pelvis may move back)
+MAX_LEAN = 0.9
+ADAPT_S = 2.0  # how fast (s) the offset a seen hip tracker shows is learned
+
+
+@njit(cache=True)
+def model_pelvis(shape, state, head_p, head_q, dt):
+    """The model's pelvis pose (position, rotation) for the head's pose. Advances the
+    heading filter."""
+    g0 = read4(shape, S_G0_HEAD)
+    head_yaw = heading(head_q, g0)
+    h2p = read3(shape, S_HEAD_TO_PELVIS)
+    pelvis0 = read4(shape, S_G0_PELVIS)
+    if shape[S_NAIVE] > 0.0:  # the baseline: straight under the head, facing its way
+        state[K_PEL_YAW] = head_yaw
+        Y = yaw_quat(head_yaw)
+        return (head_p[0], head_p[1] + h2p[1], head_p[2]), tmul(Y, pelvis0)
+    yaw = state[K_PEL_YAW] + (1.0 - math.exp(-dt * YAW_RATE)) * wrap(head_yaw - state[K_PEL_YAW])
+    state[K_PEL_YAW] = wrap(yaw)
+    Y = yaw_quat(yaw)
+    length = max(-h2p[1], 1e-3)
+    drop = max(shape[S_STAND_HEAD] - head_p[1], 0.0)
+    back = min(DROP_BACK * drop, MAX_LEAN * length)
+    lean = math.asin(back / length)
+    left = trotate(Y, (1.0, 0.0, 0.0))
+    tilt = taxis_angle(left[0], left[1], left[2], lean)  # the torso bends forward
+    turn = tmul(tilt, Y)
+    return add(head_p, trotate(turn, h2p)), tmul(turn, pelvis0)
+
+
+@njit(cache=True)
+def adapted(state, model_p):
+    """The model's pelvis moved by the offset learned while a hip tracker was seen."""
+    return add(model_p, trotate(yaw_quat(state[K_PEL_YAW]), read3(state, K_PEL_ADAPT)))
+
+
+@njit(cache=True)
+def learn_pelvis(state, model_p, measured_p, dt):
+    """While a hip tracker is seen: learn how far the person's pelvis sits from the
+    model's (body axes), for the time it is lost."""
+    Y = yaw_quat(state[K_PEL_YAW])
+    rel = trotate(tconj(Y), (measured_p[0] - model_p[0], measured_p[1] - model_p[1],
+                             measured_p[2] - model_p[2]))
+    a = 1.0 - math.exp(-dt / ADAPT_S)
+    for i in range(3):
+        state[K_PEL_ADAPT + i] += a * (rel[i] - state[K_PEL_ADAPT + i])
+

@@ -1,0 +1,117 @@
+"""Avatars' tracking as rows of arrays: each avatar's mounts, body shape and tracking
+state, the device poses of its newest frame, and the targets and weights the solver
+takes. Staging a frame is a few array operations; ``fill`` makes the targets of any set
+of rows in one compiled call."""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Iterable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from posecast.solver.calibration import Calibration, Mount
+from posecast.solver.kernels import bone_targets
+from posecast.solver.tracking.devices import DEVICES, ELBOW_L, KNEE_R, SLOT
+from posecast.solver.tracking.fill import fill_batch, new_state
+from posecast.solver.tracking.layout import ND, SHAPE_SIZE, STATE_SIZE
+from posecast.solver.tracking.shape import body_shape, bone_poses
+
+Array = NDArray[np.float64]
+
+
+@functools.lru_cache(maxsize=256)  # bounded: the roles come from clients
+def slots_of(roles: tuple[str, ...]) -> NDArray[np.intp]:
+    """The slot of each role of a frame (read-only; cached: a player sends the same roles
+    every frame)."""
+    index = np.array([SLOT[r] for r in roles], dtype=np.intp)
+    index.flags.writeable = False
+    return index
+
+
+class TrackingRows:
+    """The tracking of up to ``capacity`` avatars (grows by doubling)."""
+
+    def __init__(self, capacity: int = 8) -> None:
+        self.dev = np.zeros((capacity, ND, 7))  # this frame's bone poses from devices
+        self.present = np.zeros((capacity, ND), dtype=np.bool_)
+        self.has = np.zeros((capacity, ND), dtype=np.bool_)  # mounted: the avatar's set
+        self.t = np.zeros(capacity)
+        self.shape = np.zeros((capacity, SHAPE_SIZE))
+        self.state = np.zeros((capacity, STATE_SIZE))
+        self.targets = np.zeros((capacity, ND, 7))
+        self.weights = np.zeros((capacity, ND))
+        self.mount_p = np.zeros((capacity, ND, 3))
+        self.mount_q = np.tile([0.0, 0.0, 0.0, 1.0], (capacity, ND, 1))
+
+    _ARRAYS = ("dev", "present", "has", "t", "shape", "state", "targets", "weights",
+               "mount_p", "mount_q")
+
+    @property
+    def capacity(self) -> int:
+        return int(self.t.shape[0])
+
+    def grow(self) -> None:
+        for name in self._ARRAYS:
+            a = getattr(self, name)
+            setattr(self, name, np.concatenate([a, a.copy()]))
+
+    def calibrate(self, row: int, cal: Calibration, devices: Iterable[str] | None = None,
+                  floor: float = 0.0, naive: bool = False, first: Array | None = None
+                  ) -> None:
+        """Row ``row`` tracks an avatar of this calibration from now on, with the devices
+        it has mounts for (or those of ``devices`` it has). ``first`` (ND, 7): the bone
+        poses the devices give when tracking starts, where they differ from the
+        calibration pose's (a mocap clip's first frame); ``naive``: the baseline model."""
+        self.has[row] = False
+        self.present[row] = False
+        for name in cal.mounts if devices is None else devices:
+            if name in cal.mounts:
+                self.mount(row, name, cal.mounts[name])
+        self.shape[row] = body_shape(cal.rig, cal.offsets, cal.pose, cal.root, floor, naive)
+        start = bone_poses(cal.rig, cal.offsets, cal.pose, cal.root)
+        if first is not None:
+            start[self.has[row]] = first[self.has[row]]
+        self.state[row] = new_state(self.shape[row], start, self.has[row])
+
+    def mount(self, row: int, device: str, mount: Mount) -> None:
+        """The avatar of ``row`` uses ``device`` through ``mount`` (a device that first
+        appears after calibration is mounted when it does)."""
+        s = SLOT[device]
+        self.has[row, s] = True
+        self.mount_p[row, s] = mount.position
+        self.mount_q[row, s] = mount.rotation
+
+    def stage(self, row: int, slots: NDArray[np.intp], poses: Array, t: float) -> None:
+        """A frame's device poses (n, 7) at ``slots`` (devices the avatar has not mounted
+        are left out), taken at time ``t`` (s), as the row's next frame."""
+        used = self.has[row, slots]
+        if not used.all():
+            slots, poses = slots[used], poses[used]
+        self.present[row] = False
+        self.present[row, slots] = True
+        out = np.empty((slots.shape[0], 7))
+        bone_targets(np.ascontiguousarray(poses), self.mount_p[row, slots],
+                     self.mount_q[row, slots], out)
+        # an elbow or knee tracker steers by its own position and its mount
+        limb = (slots >= ELBOW_L) & (slots <= KNEE_R)
+        if limb.any():
+            out[limb, :3] = poses[limb, :3]
+            out[limb, 3:6] = self.mount_p[row, slots[limb]]
+            out[limb, 6] = 0.0
+        self.dev[row, slots] = out
+        self.t[row] = t
+
+    def lost(self, row: int) -> NDArray[np.bool_]:
+        """(ND,) the devices the avatar uses that its newest frame lacks."""
+        return self.has[row] & ~self.present[row]
+
+    def fill(self, rows: NDArray[np.intp]) -> None:
+        """The targets and weights of these rows from their staged frames."""
+        fill_batch(rows, self.dev, self.present, self.has, self.t, self.shape, self.state,
+                   self.targets, self.weights)
+
+
+def lost_roles(lost: NDArray[np.bool_]) -> tuple[str, ...]:
+    return tuple(DEVICES[i] for i in np.flatnonzero(lost))
