@@ -30,7 +30,7 @@ from posecast.client.connection import (
     open_session,
     stop_task,
 )
-from posecast.client.sources.base import ROLES, DeviceSample, PoseSource, now
+from posecast.client.sources.base import ROLES, DeviceSample, PoseSource, SourceError, now
 from posecast.protocol import (
     Calibrate,
     DeviceRole,
@@ -323,10 +323,15 @@ class Player:
         pose, read (its capture time), encoded and written at once. None when the source
         has ended."""
         if self._recalibrate:
-            message = calibrate_message(self.source.calibration(), session.clock.offset)
-            if session.send_now(encode(message)):  # else: next slot
+            try:
+                message = calibrate_message(self.source.calibration(), session.clock.offset)
+            except SourceError as err:  # a hand not tracked now: the session goes on
                 self._recalibrate = False
-                self.stats.calibrations_sent += 1
+                log.warning("not recalibrated: %s", err)
+            else:
+                if session.send_now(encode(message)):  # else: next slot
+                    self._recalibrate = False
+                    self.stats.calibrations_sent += 1
         sample = self.source.read()
         if sample is None:
             return None

@@ -51,6 +51,13 @@ BAD_ARGUMENTS: list[tuple[list[str], str]] = [
     (["play", "--server", URL, "--room", "r", "--source", "vive:/no/such.csv"], "--source"),
     (["play", "--server", URL, "--room", "r", "--source", "kinect"], "--source"),
     (["play", "--server", URL, "--room", "r", "--devices", "/no/such.toml"], "--devices"),
+    (["play", "--server", URL, "--room", "r", "--roles", "/no/such.toml"], "--roles"),
+    (["play", "--server", URL, "--room", "r", "--devices", "head,hip"], "--devices"),
+    (["play", "--server", URL, "--room", "r", "--dropouts", "often"], "--dropouts"),
+    (["eval", "--devices", "5"], "--devices"),
+    (["eval", "--dropouts", "6,max=0"], "--dropouts"),
+    (["demo", "--devices", "head,elbow"], "--devices"),
+    (["bench", "solver", "--devices", "2"], "--devices"),
     (["play", "--server", URL, "--room", "r", "--offset", "1"], "--offset"),
     (["play", "--server", URL, "--room", "r", "--offset", "1,nan"], "--offset"),
     (["play", "--server", URL, "--room", "r", "--seconds", "0"], "--seconds"),
@@ -428,3 +435,16 @@ def test_view_says_what_it_wrote_where(server: str, egl: None, tmp_path: Path) -
 def test_log_lines_never_carry_raw_client_text() -> None:
     line = _safe("evil\n2026-01-01 INFO forged line\x1b[31m" + "x" * 100)
     assert "\n" not in line and "\x1b" not in line and len(line) < 60
+
+
+def test_play_with_three_devices_losing_some_streams_on_and_counts_them(
+        server: str, tmp_path: Path) -> None:
+    """`play --devices 4 --dropouts ...`: head, hands and hip, some lost now and then:
+    never an error from the server, and the summary names what was lost."""
+    play = Command("play", "--server", server, "--room", "sets", "--source", CLIP,
+                   "--loop", "--devices", "4", "--dropouts", "120,max=0.5,seed=2",
+                   "--seconds", "3", cwd=tmp_path)
+    code, out, err = play.finish()
+    assert code == 0, err
+    assert "from 4 devices (head, hip, left_hand, right_hand)" in out, out
+    assert "; lost: " in out and "server errors" not in out + err, out + err

@@ -1,15 +1,13 @@
 """The OpenVR source without hardware, through the real ``openvr`` package.
 
-An ``openvr.IVRSystem`` is built without ``openvr.init`` and its function table filled
-with ctypes callbacks of the table's own prototypes, so the package's real wrapper code
+``FakeVR`` (tests/openvr_fake.py) fills a real ``openvr.IVRSystem``'s function table with
+ctypes callbacks of the table's own prototypes, so the package's real wrapper code
 (buffers, error codes, the pose array) and our role mapping and pose conversion run.
 """
 
 from __future__ import annotations
 
-import ctypes
-from collections.abc import Callable
-from dataclasses import dataclass, field
+import time
 from pathlib import Path
 from typing import Any
 
@@ -17,148 +15,22 @@ import numpy as np
 import openvr
 import pytest
 from numpy.typing import NDArray
+from openvr_fake import HMD, LEFT, RIGHT, TRACKER, Device, FakeVR, pose_matrix, rig_devices
 
 from posecast.client.sources import SourceError, open_source
 from posecast.client.sources.openvr_source import (
+    OUT_OF_RANGE_S,
     OpenVRSource,
     load_serial_roles,
     poses_from_matrices,
 )
 from posecast.solver import rotations as R
 
-TABLE_TYPES = dict(openvr.IVRSystem_FnTable._fields_)
-# getStringTrackedDeviceProperty's table prototype passes the buffer as c_char_p, which a
-# Python callback receives as a bytes copy it cannot write to. The same C signature with
-# the buffer as void* gives us its address; the callback is cast to the table's type.
-STRING_PROTO = openvr.OPENVR_FNTABLE_CALLTYPE(
-    ctypes.c_uint32, openvr.TrackedDeviceIndex_t, openvr.ETrackedDeviceProperty,
-    ctypes.c_void_p, ctypes.c_uint32, ctypes.POINTER(openvr.ETrackedPropertyError))
-
-
-def pose_matrix(q: NDArray[np.float64], p: tuple[float, float, float]) -> NDArray[np.float64]:
-    m = np.zeros((3, 4))
-    m[:, :3] = R.to_matrix(q)
-    m[:, 3] = p
-    return m
-
 
 def same_rotation(a: NDArray[np.float64], b: NDArray[np.float64]) -> float:
     """|angle| in radians between two quaternions (q and -q are one rotation)."""
     return float(2.0 * np.arccos(min(1.0, abs(float(np.dot(a, b))))))
 
-
-@dataclass
-class Device:
-    cls: int
-    matrix: NDArray[np.float64] = field(default_factory=lambda: pose_matrix(R.IDENTITY,
-                                                                            (0, 1, 0)))
-    serial: str = ""
-    kind: str = ""  # Prop_ControllerType_String
-    hand: int = openvr.TrackedControllerRole_Invalid
-    valid: bool = True
-    result: int = openvr.TrackingResult_Running_OK
-    connected: bool = True
-
-
-class FakeVR:
-    """An IVRSystem whose function table answers from ``devices`` (index -> Device)."""
-
-    def __init__(self, devices: dict[int, Device], display_hz: float | None = 90.0) -> None:
-        self.devices = devices
-        self.display_hz = display_hz
-        self.events: list[tuple[int, int]] = []  # (event type, device index) to deliver
-        self.origins: list[int] = []
-        self.scans = 0
-        self._keep: list[Any] = []  # the callbacks must outlive the table
-        table = openvr.IVRSystem_FnTable()
-        self._fill(table, "getDeviceToAbsoluteTrackingPose", self._poses)
-        self._fill(table, "getTrackedDeviceClass", self._class)
-        self._fill(table, "isTrackedDeviceConnected", self._connected)
-        self._fill(table, "getControllerRoleForTrackedDeviceIndex", self._hand)
-        self._fill(table, "getFloatTrackedDeviceProperty", self._float)
-        self._fill(table, "pollNextEvent", self._event)
-        cb = STRING_PROTO(self._string)
-        self._keep.append(cb)
-        table.getStringTrackedDeviceProperty = ctypes.cast(
-            cb, TABLE_TYPES["getStringTrackedDeviceProperty"])
-        self.system = object.__new__(openvr.IVRSystem)
-        self.system.function_table = table
-
-    def _fill(self, table: openvr.IVRSystem_FnTable, name: str,
-              fn: Callable[..., Any]) -> None:
-        cb = TABLE_TYPES[name](fn)
-        self._keep.append(cb)
-        setattr(table, name, cb)
-
-    def _poses(self, origin: int, _predict: float, poses: Any, count: int) -> None:
-        self.origins.append(origin)
-        for i in range(count):
-            pose = poses[i]  # a view into the caller's array
-            dev = self.devices.get(i)
-            if dev is None:
-                pose.bPoseIsValid = pose.bDeviceIsConnected = 0
-                pose.eTrackingResult = openvr.TrackingResult_Uninitialized
-                continue
-            for r in range(3):
-                for c in range(4):
-                    pose.mDeviceToAbsoluteTracking.m[r][c] = dev.matrix[r, c]
-            pose.bPoseIsValid = int(dev.valid)
-            pose.bDeviceIsConnected = int(dev.connected)
-            pose.eTrackingResult = dev.result
-
-    def _class(self, i: int) -> int:
-        if i == 0:
-            self.scans += 1
-        dev = self.devices.get(i)
-        return openvr.TrackedDeviceClass_Invalid if dev is None else dev.cls
-
-    def _connected(self, i: int) -> int:
-        dev = self.devices.get(i)
-        return int(dev is not None and dev.connected)
-
-    def _hand(self, i: int) -> int:
-        dev = self.devices.get(i)
-        return openvr.TrackedControllerRole_Invalid if dev is None else dev.hand
-
-    def _float(self, i: int, prop: int, err: Any) -> float:
-        if i == 0 and prop == openvr.Prop_DisplayFrequency_Float and self.display_hz:
-            err[0] = openvr.TrackedProp_Success
-            return self.display_hz
-        err[0] = openvr.TrackedProp_UnknownProperty
-        return 0.0
-
-    def _string(self, i: int, prop: int, buf: int | None, size: int, err: Any) -> int:
-        dev = self.devices.get(i)
-        value = None
-        if dev is not None:
-            value = {openvr.Prop_SerialNumber_String: dev.serial,
-                     openvr.Prop_ControllerType_String: dev.kind}.get(prop) or None
-        if value is None:
-            err[0] = (openvr.TrackedProp_InvalidDevice if dev is None
-                      else openvr.TrackedProp_ValueNotProvidedByDevice)
-            return 0
-        data = value.encode() + b"\0"
-        if buf is None or size < len(data):
-            err[0] = openvr.TrackedProp_BufferTooSmall
-            return len(data)
-        ctypes.memmove(buf, data, len(data))
-        err[0] = openvr.TrackedProp_Success
-        return len(data)
-
-    def _event(self, event: Any, _size: int) -> int:
-        if not self.events:
-            return 0
-        kind, index = self.events.pop(0)
-        event[0].eventType = kind
-        event[0].trackedDeviceIndex = index
-        return 1
-
-
-HMD = openvr.TrackedDeviceClass_HMD
-CONTROLLER = openvr.TrackedDeviceClass_Controller
-TRACKER = openvr.TrackedDeviceClass_GenericTracker
-LEFT = openvr.TrackedControllerRole_LeftHand
-RIGHT = openvr.TrackedControllerRole_RightHand
 
 # known rotations, 180-degree turns among them (the cases a trace-only conversion breaks)
 ROTATIONS = [
@@ -171,22 +43,10 @@ ROTATIONS = [
 
 
 def full_rig() -> dict[int, Device]:
-    """An HMD, two controllers, seven role trackers, a base station and a chest tracker;
-    device k stands at (k, 1 + k/10, -k/100) turned by ROTATIONS[k % 10]."""
-    spec = [
-        Device(HMD, serial="HMD-1"),
-        Device(CONTROLLER, serial="CTRL-L", hand=LEFT),
-        Device(CONTROLLER, serial="CTRL-R", hand=RIGHT),
-        Device(TRACKER, serial="LHR-WAIST", kind="vive_tracker_waist"),
-        Device(TRACKER, serial="LHR-LFOOT", kind="vive_tracker_left_foot"),
-        Device(TRACKER, serial="LHR-RFOOT", kind="vive_tracker_right_foot"),
-        Device(TRACKER, serial="LHR-LKNEE", kind="vive_tracker_left_knee"),
-        Device(TRACKER, serial="LHR-RKNEE", kind="vive_tracker_right_knee"),
-        Device(TRACKER, serial="LHR-LELB", kind="vive_tracker_left_elbow"),
-        Device(TRACKER, serial="LHR-RELB", kind="vive_tracker_right_elbow"),
-        Device(openvr.TrackedDeviceClass_TrackingReference, serial="LHB-1"),
-        Device(TRACKER, serial="LHR-CHEST", kind="vive_tracker_chest"),
-    ]
+    """An HMD, two controllers, seven role trackers, a base station and a chest tracker
+    (``rig_devices``); device k stands at (k, 1 + k/10, -k/100) turned by
+    ROTATIONS[k % 10]."""
+    spec = rig_devices()
     for k, dev in enumerate(spec):
         dev.matrix = pose_matrix(ROTATIONS[k % len(ROTATIONS)], (k, 1 + k / 10, -k / 100))
     return dict(enumerate(spec))
@@ -194,13 +54,13 @@ def full_rig() -> dict[int, Device]:
 
 EXPECTED_ROLES = {"head": 0, "hip": 3, "left_hand": 1, "right_hand": 2, "left_forearm": 8,
                   "right_forearm": 9, "left_foot": 4, "right_foot": 5, "left_knee": 6,
-                  "right_knee": 7}
+                  "right_knee": 7, "chest": 11}
 
 
 def test_roles_from_device_class_controller_role_and_tracker_role() -> None:
     vr = FakeVR(full_rig())
     src = OpenVRSource(system=vr.system)
-    assert src.device_roles == EXPECTED_ROLES
+    assert src.device_roles == EXPECTED_ROLES  # the chest tracker is the chest now
     assert src.rate_hz == 90.0
 
 
@@ -212,15 +72,16 @@ def test_poses_match_the_matrices_including_180_degree_turns() -> None:
     assert vr.origins == [openvr.TrackingUniverseStanding]
     assert sample.roles == ("head", "hip", "left_hand", "right_hand", "left_forearm",
                             "right_forearm", "left_foot", "right_foot", "left_knee",
-                            "right_knee")
+                            "right_knee", "chest")
     for d, role in enumerate(sample.roles):
         k = EXPECTED_ROLES[role]
         np.testing.assert_allclose(sample.positions[d], (k, 1 + k / 10, -k / 100), atol=1e-6)
         q = sample.rotations[d]
         assert abs(np.linalg.norm(q) - 1.0) < 1e-12
-        assert same_rotation(q, ROTATIONS[k]) < 1e-6, role  # float32 matrices
+        # float32 matrices
+        assert same_rotation(q, ROTATIONS[k % len(ROTATIONS)]) < 1e-6, role
         np.testing.assert_allclose(R.to_matrix(q), devices[k].matrix[:, :3], atol=1e-6)
-    assert sample.positions.shape == (10, 3) and sample.rotations.shape == (10, 4)
+    assert sample.positions.shape == (11, 3) and sample.rotations.shape == (11, 4)
 
 
 def test_display_frequency_sets_the_rate() -> None:
@@ -231,8 +92,10 @@ def test_display_frequency_sets_the_rate() -> None:
 
 @pytest.mark.parametrize("broken", [
     {"valid": False},
+    # never Running_OK before: no IMU grace, left out at once
     {"result": openvr.TrackingResult_Running_OutOfRange},
     {"result": openvr.TrackingResult_Calibrating_InProgress},
+    {"result": openvr.TrackingResult_Calibrating_OutOfRange},
     {"connected": False},
 ])
 def test_untracked_poses_are_skipped(broken: dict[str, Any]) -> None:
@@ -243,9 +106,67 @@ def test_untracked_poses_are_skipped(broken: dict[str, Any]) -> None:
     sample = OpenVRSource(system=FakeVR(devices).system).read()
     assert sample is not None
     assert "left_foot" not in sample.roles and "left_hand" not in sample.roles
-    assert len(sample.roles) == 8
+    assert len(sample.roles) == 9
     hip = sample.roles.index("hip")
     np.testing.assert_allclose(sample.positions[hip], (3, 1.3, -0.03), atol=1e-6)
+
+
+def test_out_of_range_is_sent_for_a_moment_after_running_ok() -> None:
+    """Running_OutOfRange (the IMU alone) with a valid pose is still sent for
+    OUT_OF_RANGE_S after the device was last Running_OK, then left out; Running_OK
+    again starts the grace afresh. Real sleeps: the source's clock is perf_counter."""
+    devices = full_rig()
+    src = OpenVRSource(system=FakeVR(devices).system)
+    foot, hand = devices[4], devices[1]
+    imu_pose = pose_matrix(ROTATIONS[5], (4.5, 0.2, -0.5))  # dead-reckoned: it moves on
+
+    def ok_then_out_of_range() -> tuple[float, float, tuple[str, ...], NDArray[np.float64]]:
+        """Read with the foot and hand Running_OK, then OutOfRange at once: (the OK
+        read's capture time, the OutOfRange read's, its roles and positions)."""
+        foot.result = hand.result = openvr.TrackingResult_Running_OK
+        foot.matrix = full_rig()[4].matrix
+        ok = src.read()
+        assert ok is not None and {"left_foot", "left_hand"} <= set(ok.roles)
+        foot.result = hand.result = openvr.TrackingResult_Running_OutOfRange
+        foot.matrix = imu_pose
+        out = src.read()
+        assert out is not None
+        return ok.t_capture, out.t_capture, out.roles, out.positions
+
+    # the next read is well within the grace, unless the machine stalled over 0.1 s
+    # between two reads: then the rule says left out, and we try again
+    for _ in range(5):
+        t_ok, t_out, roles, positions = ok_then_out_of_range()
+        within = t_out - t_ok <= OUT_OF_RANGE_S
+        assert ("left_foot" in roles) == within and ("left_hand" in roles) == within
+        if within:
+            break
+    assert within, "no read came within OUT_OF_RANGE_S of the one before"
+    assert len(roles) == 11  # nothing left out yet
+    # the pose sent is the one SteamVR reports, the IMU's
+    np.testing.assert_allclose(positions[roles.index("left_foot")], (4.5, 0.2, -0.5),
+                               atol=1e-6)
+    time.sleep(OUT_OF_RANGE_S + 0.05)  # still OutOfRange: too long since Running_OK
+    later = src.read()
+    assert later is not None
+    assert "left_foot" not in later.roles and "left_hand" not in later.roles
+    assert len(later.roles) == 9
+    # OutOfRange without a valid pose is left out even right after Running_OK
+    foot.result = openvr.TrackingResult_Running_OK
+    ok = src.read()
+    foot.result, foot.valid = openvr.TrackingResult_Running_OutOfRange, False
+    out = src.read()
+    foot.valid = True
+    assert ok is not None and out is not None
+    assert "left_foot" in ok.roles and "left_foot" not in out.roles
+    # back to Running_OK: sent again, and the grace counts from this Running_OK
+    for _ in range(5):
+        t_ok, t_out, roles, _ = ok_then_out_of_range()
+        within = t_out - t_ok <= OUT_OF_RANGE_S
+        assert ("left_foot" in roles) == within
+        if within:
+            break
+    assert within
 
 
 def test_serial_override_beats_the_steamvr_role(tmp_path: Path) -> None:
@@ -256,6 +177,7 @@ def test_serial_override_beats_the_steamvr_role(tmp_path: Path) -> None:
     roles = src.device_roles
     assert roles["left_knee"] == 3 and roles["hip"] == 11
     assert 6 not in roles.values()  # the SteamVR left knee lost its role to the override
+    assert "chest" not in roles  # the chest tracker's SteamVR role gave way to its serial
     sample = src.read()
     assert sample is not None
     np.testing.assert_allclose(sample.positions[sample.roles.index("hip")],
@@ -294,16 +216,45 @@ def test_steamvr_quitting_ends_the_source() -> None:
     assert src.read() is None
 
 
-def test_calibration_waits_for_the_driving_devices_then_names_the_missing() -> None:
+def test_calibration_waits_for_head_and_hands_then_names_the_missing() -> None:
     devices = full_rig()
     src = OpenVRSource(system=FakeVR(devices).system, calibration_timeout=0.05)
     sample = src.calibration()
-    assert {"head", "hip", "left_hand", "right_hand", "left_foot", "right_foot"} <= set(
-        sample.roles)
+    assert set(sample.roles) == set(EXPECTED_ROLES)  # every device tracked then
+    # the feet untracked: calibrated without them (mounted when they come)
     devices[4].valid = False
-    devices[5].result = openvr.TrackingResult_Running_OutOfRange
-    with pytest.raises(SourceError, match=r"calibration needs left_foot, right_foot tracked"):
+    devices[5].result = openvr.TrackingResult_Calibrating_OutOfRange
+    sample = src.calibration()
+    assert set(sample.roles) == set(EXPECTED_ROLES) - {"left_foot", "right_foot"}
+    # a hand untracked: no calibration, and the message names it (not the feet)
+    devices[1].connected = False
+    # (once calibrated, a recalibration does not wait: the stream goes on meanwhile)
+    with pytest.raises(SourceError, match=r"calibration needs left_hand tracked, not "
+                                          r"tracked now") as info:
         src.calibration()
+    assert "foot" not in str(info.value)
+    devices[2].valid = False
+    with pytest.raises(SourceError, match=r"calibration needs left_hand, right_hand tracked"):
+        src.calibration()
+    devices[0].result = openvr.TrackingResult_Calibrating_InProgress
+    with pytest.raises(SourceError, match=r"needs head, left_hand, right_hand tracked"):
+        src.calibration()
+
+
+def test_calibration_waits_until_the_hands_are_tracked() -> None:
+    devices = full_rig()
+    devices[1].valid = devices[2].valid = False
+    vr = FakeVR(devices)
+
+    def hands_on(n: int) -> None:  # the controllers come on at the fourth read
+        if n == 3:
+            devices[1].valid = devices[2].valid = True
+
+    vr.on_read = hands_on
+    sample = OpenVRSource(system=vr.system, calibration_timeout=30.0).calibration()
+    assert vr.reads == 4
+    assert {"head", "left_hand", "right_hand"} <= set(sample.roles)
+    assert len(sample.roles) == 11
 
 
 @pytest.mark.parametrize(("text", "message"), [

@@ -241,12 +241,17 @@ class OpenVRSource:
                 raise SourceError("SteamVR quit before calibration")
             missing = [r for r in CALIBRATION_DEVICES if r not in sample.roles]
             if not missing:
+                # a later recalibration (Enter, mid-session) must not block the stream
+                # waiting for a hand behind the back: it says so at once instead
+                self.calibration_timeout = 0.0
                 return sample
             if time.monotonic() >= deadline:
+                waited = (f"still missing after {self.calibration_timeout:g} s"
+                          if self.calibration_timeout > 0.0 else "not tracked now")
                 raise SourceError(
-                    f"calibration needs {', '.join(missing)} tracked, still missing after "
-                    f"{self.calibration_timeout:g} s: switch them on and assign their roles "
-                    f"in SteamVR (or by serial in the config file)")
+                    f"calibration needs {', '.join(missing)} tracked, {waited}: switch "
+                    f"them on and assign their roles in SteamVR (or by serial in the "
+                    f"config file)")
             time.sleep(1.0 / self.rate_hz)
 
     def close(self) -> None:
