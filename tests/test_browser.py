@@ -2,8 +2,9 @@
 playwright, against a real server on 127.0.0.1 whose players replay the built-in walk.
 The page must draw both avatars skinned (their colours on screen), each name above its
 avatar, the avatars moving between two screenshots, and the server's /metrics must then
-hold the page's capture_to_presented. Every wait is for a condition, with a generous
-bound only for failing; nothing asserts a duration.
+hold the page's capture_to_presented; a device a player loses must be named under its
+avatar's name and in the HUD while it is lost, and no longer once found. Every wait is
+for a condition, with a generous bound only for failing; nothing asserts a duration.
 
 POSECAST_SCREENSHOTS=DIR keeps the two screenshots there (docs/browser_spectator*.png
 come from this test).
@@ -23,6 +24,8 @@ import numpy as np
 import pytest
 from browser_room import CHROMIUM_ARGS, LiveRoom, chromium_or_skip
 
+from posecast.client.builtin import builtin_motion_path
+from posecast.client.sources.bvh_source import BvhSource
 from posecast.server.web import STATIC_DIR
 
 WAIT_S = 90.0  # a bound for failing only: a loaded machine is slow, never this slow
@@ -80,13 +83,33 @@ class Page:
     def status(self) -> str:
         return str(self.page.evaluate("() => document.getElementById('status').textContent"))
 
+    def hud(self) -> str:
+        return str(self.page.evaluate("() => document.getElementById('hud').textContent"))
+
     def labels(self) -> list[dict[str, Any]]:
+        """Each name label: the name, the line under it (its devices; "" when hidden),
+        where it is and its colour."""
         return list(self.page.evaluate("""() => [...document.querySelectorAll('.name')].map(e => {
             const r = e.getBoundingClientRect();
-            return {text: e.textContent, shown: getComputedStyle(e).display !== 'none',
+            const devices = e.querySelector('.devices');
+            return {text: e.querySelector('.who').textContent,
+                    devices: devices.hidden ? '' : devices.textContent,
+                    shown: getComputedStyle(e).display !== 'none',
                     left: r.left, right: r.right, top: r.top, bottom: r.bottom,
                     color: getComputedStyle(e).borderTopColor};
         })"""))
+
+    def devices(self) -> dict[str, str]:
+        """Each name label's device line, by name."""
+        return {label["text"]: label["devices"] for label in self.labels()}
+
+    def until_seen(self, what: str, read: Callable[[], Any],
+                   ok: Callable[[Any], bool]) -> Any:
+        deadline = time.monotonic() + WAIT_S
+        while not ok(got := read()):
+            assert time.monotonic() < deadline, f"the page never showed {what}: {got!r}"
+            time.sleep(0.02)
+        return got
 
     def shot(self) -> np.ndarray:
         from PIL import Image
@@ -178,6 +201,38 @@ def test_the_page_draws_names_and_moves_every_avatar_and_reports_it(
         assert page.errors == []
     finally:
         page.close()
+
+
+def test_a_lost_device_is_named_under_its_avatar_and_in_the_hud(browser: Any) -> None:
+    # player 2's left foot is lost for a second, found for one, and so on
+    with LiveRoom("drops", players=2, lose={1: ("left_foot",)}) as room:
+        page = Page(browser, f"{room.http}/?room={room.room}")
+        try:
+            page.until("both avatars drawn", lambda s: s.get("drawn") == 2)
+            whole = f"{len(walk_devices())} devices"
+            lost = page.until_seen("player 2's foot lost", page.devices,
+                                   lambda d: "lost" in d.get("player 2", ""))
+            assert lost == {"player 1": whole, "player 2": f"{whole} — lost: left_foot"}
+            hud = page.until_seen("the loss in the HUD", page.hud,
+                                  lambda h: "player 2" in h)
+            assert hud.splitlines()[-1] == f"player 2 ({whole}): lost left_foot", hud
+            found = page.until_seen("player 2's foot found", page.devices,
+                                    lambda d: d.get("player 2") == whole)
+            assert found == {"player 1": whole, "player 2": whole}
+            page.until_seen("no loss in the HUD", page.hud, lambda h: "lost" not in h)
+            assert page.stats()["badMessages"] == 0
+            assert page.errors == []
+        finally:
+            page.close()
+
+
+def walk_devices() -> tuple[str, ...]:
+    """The devices the built-in walk's players have (their avatars' tracker set)."""
+    source = BvhSource(builtin_motion_path())
+    try:
+        return source.calibration().roles
+    finally:
+        source.close()
 
 
 def check_named_avatars(image: np.ndarray, labels: list[dict[str, Any]]) -> None:

@@ -1,8 +1,9 @@
 """The browser spectator's JavaScript against the Python it mirrors, run by Node's own
 test runner (client/web/test/wire.test.mjs): rotations decoded bit for bit as
 protocol/quantize.py decodes them, whole server messages, the clock estimator sample by
-sample, the mesh fitted and posed as the desktop viewer does it; and the messages the
-page sends, decoded here."""
+sample, the mesh fitted and posed as the desktop viewer does it, each avatar's lost
+devices worded as the desktop viewer's HUD words them; and the messages the page sends,
+decoded here."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ import numpy as np
 import pytest
 from conftest import REPO_ROOT
 
+from posecast.client.viewer.overlay import device_lines
 from posecast.client.viewer.skinning import fit_avatar, pose_matrices
 from posecast.protocol import (
     PROTOCOL_VERSION,
@@ -36,6 +38,7 @@ from posecast.protocol import (
     encode,
     quantize_rotations,
 )
+from posecast.protocol.roles import DEVICE_ROLES, DeviceRole, role_bits
 from posecast.server.web import avatar_document
 from posecast.solver import rotations as R
 from posecast.solver.readers.gltf import load_makehuman
@@ -79,14 +82,24 @@ def bad_rotations() -> list[dict[str, str]]:
     return out
 
 
+# avatar 11 of the batch: its player's frame lacked these (bits 1, 6 and 10)
+LOST: tuple[DeviceRole, ...] = ("hip", "left_foot", "chest")
+
+
 def batch_case(rng: np.random.Generator) -> dict[str, object]:
     batch = AvatarBatch.from_arrays(
         [3, 11], [7, 2**40], np.array([[0.5, 0.9, -1.25], [1e-3, 1.0, 2.0]]),
-        [unit(rng, 53), unit(rng, 3)], [10.25, 10.5], [10.3, 10.6], [10.4, 10.7], 10.8)
+        [unit(rng, 53), unit(rng, 3)], [10.25, 10.5], [10.3, 10.6], [10.4, 10.7], 10.8,
+        lost=[0, role_bits(LOST)])
     wire = encode(batch)
     got = decode(wire)
     assert isinstance(got, AvatarBatch)
-    return {"wire": wire.hex(), "values": {
+    # a version-1 recording's batch has no lost column: nothing lost
+    old = {k: v for k, v in msgpack.unpackb(wire).items() if k != "lost"}
+    old_wire = msgpack.packb(old, use_bin_type=True)
+    assert isinstance(v1 := decode(old_wire), AvatarBatch) and v1.lost.tolist() == [0, 0]
+    return {"wire": wire.hex(), "v1_wire": old_wire.hex(), "values": {
+        "lost": got.lost.tolist(), "lost_roles": [list(f.lost_roles) for f in got.frames],
         "avatar_ids": got.avatar_ids.tolist(), "seqs": got.seqs.tolist(),
         "joint_counts": got.joint_counts.tolist(), "roots": got.roots.ravel().tolist(),
         "rotations": got.rotations.ravel().tolist(), "t_capture": got.t_capture.tolist(),
@@ -100,8 +113,14 @@ def bad_messages(batch_wire: bytes) -> list[dict[str, str]]:
     far = dict(obj, roots=np.array([[0, 0, 0], [0, 1e4, 0]], "<f4").tobytes())
     nan = dict(obj, t_capture=np.array([1.0, np.nan]).tobytes())
     twice = dict(obj, avatar_ids=np.array([3, 3], "<i8").tobytes())
+    lost_short = dict(obj, lost=obj["lost"][:2])
+    lost_beyond = dict(obj, lost=np.array([0, 1 << len(DEVICE_ROLES)], "<u2").tobytes())
+    lost_list = dict(obj, lost=[0, 1])
     cases = [(short, "avatar_batch.rotations"), (far, "avatar_batch.roots"),
              (nan, "avatar_batch.t_capture"), (twice, "appears twice"),
+             (lost_short, "avatar_batch.lost: expected 4 bytes"),
+             (lost_beyond, "avatar_batch.lost: bits beyond the 11 device roles"),
+             (lost_list, "avatar_batch.lost: expected 4 bytes"),
              ({"type": "nonsense"}, "unknown message type"), ([1, 2], "a map with")]
     out = [{"wire": msgpack.packb(m, use_bin_type=True).hex(), "words": w} for m, w in cases]
     return [*out, {"wire": batch_wire[:-3].hex(), "words": "not a msgpack message"}]
@@ -176,6 +195,7 @@ def test_the_pages_javascript_speaks_the_python_protocol(node: str, tmp_path: Pa
         "rotations": rotation_cases(rng), "bad_rotations": bad_rotations(), "batch": batch,
         "bad_messages": bad_messages(bytes.fromhex(batch["wire"])),  # type: ignore[arg-type]
         "roster": roster_case(), "clock": clock_cases(rng), "skinning": skinning_case(rng),
+        "lost": lost_case(batch),
         "avatar_json": json.loads(avatar_document("/static/avatar.glb")),
         "pong": encode(Pong(t0=1.5, t1=2.25, t2=2.5)).hex(),
         "error": encode(Error(code="invalid", message="hello.room: no")).hex(),
@@ -202,7 +222,31 @@ def test_the_pages_javascript_speaks_the_python_protocol(node: str, tmp_path: Pa
 def roster_case() -> dict[str, object]:
     info = AvatarInfo(avatar_id=9, display_name="Zoë 2", joint_names=("root", "a", "b"),
                       parents=(-1, 0, 1),
-                      rest_offsets=np.array([[0.0, 1.0, 0.0], [0.1, 0.2, 0.3], [0, -0.4, 0]]))
+                      rest_offsets=np.array([[0.0, 1.0, 0.0], [0.1, 0.2, 0.3], [0, -0.4, 0]]),
+                      devices=("head", "left_hand", "right_hand", "hip"))
+    # an older recording's entry names no devices; and one that names an unknown device
+    old = {k: v for k, v in info.model_dump().items() if k != "devices"}
+    bad = dict(old, devices=["head", "tail"])
+    wire = {name: msgpack.packb({"type": "avatar_roster", "avatars": [entry], "removed": []},
+                                use_bin_type=True).hex() for name, entry in (("old", old),
+                                                                               ("bad", bad))}
     return {"wire": encode(AvatarRoster(avatars=(info,), removed=(2, 5))).hex(),
             "removed": [2, 5], "display_name": "Zoë 2", "joint_names": ["root", "a", "b"],
-            "parents": [-1, 0, 1], "rest_offsets": info.rest_offsets.ravel().tolist()}
+            "parents": [-1, 0, 1], "rest_offsets": info.rest_offsets.ravel().tolist(),
+            "devices": list(info.devices), "old_wire": wire["old"], "bad_wire": wire["bad"]}
+
+
+def lost_case(batch: dict[str, object]) -> dict[str, object]:
+    """The desktop HUD's lines for the batch's avatars (3 with every device, 11 with six
+    of them, three lost): the page's must be the same."""
+    decoded = decode(bytes.fromhex(str(batch["wire"])))
+    assert isinstance(decoded, AvatarBatch)
+    infos = [one_joint(3, "player 1", DEVICE_ROLES),
+             one_joint(11, "player 2", ("head", "left_hand", "right_hand", *LOST))]
+    return {"avatars": [{"name": i.display_name, "devices": list(i.devices)} for i in infos],
+            "lines": device_lines(zip(infos, decoded.frames, strict=True))}
+
+
+def one_joint(avatar_id: int, name: str, devices: tuple[DeviceRole, ...]) -> AvatarInfo:
+    return AvatarInfo(avatar_id=avatar_id, display_name=name, joint_names=("root",),
+                      parents=(-1,), rest_offsets=np.zeros((1, 3)), devices=devices)

@@ -1,4 +1,5 @@
-"""The viewer's pure parts: mesh fitting, levels of detail, cameras, HUD text (no GL)."""
+"""The viewer's pure parts: mesh fitting, levels of detail, cameras, HUD and label text
+(no GL)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import itertools
 import numpy as np
 import pytest
 
+from posecast.client.spectator import Spectator
 from posecast.client.viewer.camera import OrbitCamera, look_at, mirror
 from posecast.client.viewer.lod import (
     HARDWARE_BUDGET,
@@ -15,8 +17,11 @@ from posecast.client.viewer.lod import (
     choose_levels,
     default_budget,
 )
-from posecast.client.viewer.overlay import hud_lines
+from posecast.client.viewer.overlay import hud_lines, label_text
+from posecast.client.viewer.scene import SpectatorScene
 from posecast.client.viewer.skinning import body_scale, fit_matrices, joint_matrices, skin
+from posecast.protocol import AvatarBatch, AvatarFrame, AvatarInfo, AvatarRoster, ClockEstimator
+from posecast.protocol.roles import DEVICE_ROLES, DeviceRole, role_bits
 from posecast.solver import rotations as R
 from posecast.solver.readers.gltf import SkinnedMesh, load_makehuman
 
@@ -130,6 +135,61 @@ def test_hud_lines_say_mode_rate_count_and_stages() -> None:
     # stages in the order a pose travels
     assert text.index("server") < text.index("capture_to_render")
     assert "zero-buffer" in hud_lines({}, 30.0, 1, "zero-buffer", None, "mirror")[0]
+
+
+def avatar(avatar_id: int, name: str, devices: tuple[DeviceRole, ...],
+           lost: tuple[str, ...] = ()) -> tuple[AvatarInfo, AvatarFrame]:
+    """A one-joint avatar with these devices, and its frame lacking ``lost``."""
+    info = AvatarInfo(avatar_id=avatar_id, display_name=name, joint_names=("root",),
+                      parents=(-1,), rest_offsets=np.array([[0.0, 1.0, 0.0]]), devices=devices)
+    frame = AvatarFrame(avatar_id=avatar_id, seq=1, root=np.array([0.0, 1.0, 0.0]),
+                        rotations=np.array([[0.0, 0.0, 0.0, 1.0]]), t_capture=1.0,
+                        t_server_receive=1.1, t_solved=1.2, t_sent=1.3, lost=role_bits(lost))
+    return info, frame
+
+
+def test_the_hud_names_each_avatars_lost_devices_and_only_those() -> None:
+    three: tuple[DeviceRole, ...] = ("head", "left_hand", "right_hand")
+    room = [avatar(1, "player 1", DEVICE_ROLES),
+            avatar(2, "player 2", DEVICE_ROLES, lost=("hip", "left_foot")),
+            avatar(3, "player 3", three, lost=("right_hand",))]
+    lines = hud_lines({}, 90.0, 3, "interpolate", None, "orbit", room)
+    assert lines[-2:] == ["player 2 (11 devices): lost hip, left_foot",
+                          "player 3 (3 devices): lost right_hand"]
+    assert "player 1" not in "\n".join(lines)
+    # nothing lost: no device line at all, as before the protocol carried losses
+    calm = [avatar(1, "player 1", DEVICE_ROLES), avatar(3, "player 3", three)]
+    assert hud_lines({}, 90.0, 2, "interpolate", None, "orbit", calm) == hud_lines(
+        {}, 90.0, 2, "interpolate", None, "orbit")
+    # an old recording's roster names no devices: the losses alone
+    old = [avatar(4, "old", (), lost=("chest",))]
+    assert hud_lines({}, 90.0, 1, "zero-buffer", None, "orbit", old)[-1] == "old: lost chest"
+
+
+def test_a_label_carries_the_lost_devices_under_the_name() -> None:
+    assert label_text("player 2", 0) == "player 2"
+    assert label_text("player 2", role_bits(["left_foot", "head"])) == \
+        "player 2\nlost head, left_foot"
+
+
+def test_the_scene_gives_each_avatars_newest_losses_to_the_hud(mesh: SkinnedMesh) -> None:
+    """From a received batch's lost column to the HUD's line and the label."""
+    spectator = Spectator("ws://127.0.0.1:1/", "lab", "viewer")
+    sk = mesh.skeleton
+    infos = [AvatarInfo(avatar_id=a, display_name=f"player {a}", joint_names=sk.names,
+                        parents=tuple(int(p) for p in sk.parents), rest_offsets=sk.offsets,
+                        devices=DEVICE_ROLES[:10]) for a in (1, 2)]
+    spectator.on_roster(AvatarRoster(avatars=tuple(infos)))
+    scene = SpectatorScene(spectator, mesh)
+    assert scene.newest() == [] and scene.lost(2) == 0  # no frame yet
+    rotations = np.tile([0.0, 0.0, 0.0, 1.0], (2, sk.num_joints, 1))
+    batch = AvatarBatch.from_arrays([1, 2], [5, 5], np.zeros((2, 3)), rotations, [1.0, 1.0],
+                                    [1.1, 1.1], 1.2, 1.3, lost=[0, role_bits(["left_foot"])])
+    spectator.on_batch(batch, 2.0, ClockEstimator())
+    assert scene.lost(1) == 0 and scene.lost(2) == role_bits(["left_foot"])
+    lines = hud_lines({}, 90.0, 2, "interpolate", None, "orbit", scene.newest())
+    assert lines[-1] == "player 2 (10 devices): lost left_foot"
+    assert "player 1" not in "\n".join(lines)
 
 
 def test_a_calibrated_avatar_wears_the_mesh_without_tearing(mesh: SkinnedMesh) -> None:

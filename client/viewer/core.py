@@ -26,7 +26,13 @@ from posecast.client.latency import LatencyRecorder
 from posecast.client.viewer.camera import Camera, OrbitCamera
 from posecast.client.viewer.interpolation import Mode
 from posecast.client.viewer.marker import MARKER_JOINTS, MarkerOverlay, marker_centres
-from posecast.client.viewer.overlay import TextItem, TextOverlay, hud_lines, label_items
+from posecast.client.viewer.overlay import (
+    TextItem,
+    TextOverlay,
+    hud_lines,
+    label_items,
+    label_text,
+)
 from posecast.client.viewer.renderer import PosedScene, Renderer, avatar_color
 from posecast.client.viewer.scene import (
     SceneFrame,
@@ -125,9 +131,10 @@ class Viewer:
                 shown = [b for b in range(len(posed)) if b != target
                          or self.view is ViewMode.ORBIT]
                 tops = r.head_tops(posed)[shown]
-                items += label_items([frame.draws[b].avatar.info.display_name for b in shown],
-                                     [avatar_color(frame.ids[b]) for b in shown], tops,
-                                     camera, r.width, r.height)
+                names = [label_text(frame.draws[b].avatar.info.display_name,
+                                    self.scene.lost(frame.ids[b])) for b in shown]
+                items += label_items(names, [avatar_color(frame.ids[b]) for b in shown],
+                                     tops, camera, r.width, r.height)
             if self.hud:
                 items.append(TextItem(self._hud(now, len(frame)), 10, 10))
             self.overlay.draw(items, r.width, r.height)
@@ -189,7 +196,7 @@ class Viewer:
             delay = (1e3 * float(np.median(list(delays.values())))
                      if mode is Mode.INTERPOLATE and delays else None)
             self._hud_text = "\n".join(hud_lines(latency, self.fps(), avatars, mode.value,
-                                                 delay, self.view.value))
+                                                 delay, self.view.value, self.scene.newest()))
         return self._hud_text
 
     def release(self) -> None:

@@ -1,16 +1,18 @@
-"""Text over the 3D view: a name label above each avatar and the HUD (latency, fps, mode).
+"""Text over the 3D view: a name label above each avatar and the HUD (latency, fps, mode,
+the devices each avatar has lost now).
 
 Text is drawn by Pillow into small RGBA images, one per distinct string and colour,
 uploaded once as textures and drawn as alpha-blended quads in the same framebuffer as the
 scene, so the window and the headless PNGs show exactly the same thing, and nothing is
-re-rasterised while the text does not change (labels never do; the HUD changes a few
-times a second). The HUD's wording is a pure function (``hud_lines``), tested without GL.
+re-rasterised while the text does not change (a label only when its avatar's lost
+devices do; the HUD a few times a second). The wording is pure functions (``hud_lines``,
+``label_text``), tested without GL.
 """
 
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import moderngl
@@ -19,6 +21,8 @@ from PIL import Image, ImageDraw, ImageFont
 
 from posecast.client.viewer.camera import Camera
 from posecast.client.viewer.renderer import uniform
+from posecast.protocol import AvatarFrame, AvatarInfo
+from posecast.protocol.roles import roles_of_bits
 
 # the stages the HUD lists, in the order a pose travels (those present are shown)
 HUD_STAGES = ("capture_to_server", "server", "network_to_spectator", "capture_to_spectator",
@@ -163,9 +167,30 @@ def label_items(names: Sequence[str], colors: Sequence[tuple[float, float, float
     return out
 
 
+def label_text(name: str, lost: int) -> str:
+    """An avatar's label: its name, and under it the devices its newest frame lacked
+    (``lost``: protocol.roles bits), so that a guessed limb is seen as one."""
+    roles = roles_of_bits(lost)
+    return f"{name}\nlost {', '.join(roles)}" if roles else name
+
+
+def device_lines(avatars: Iterable[tuple[AvatarInfo, AvatarFrame]]) -> list[str]:
+    """A line per avatar whose newest frame lacks some of its devices: its name, how many
+    devices it has, the ones lost ("player 2 (10 devices): lost left_foot, hip")."""
+    out = []
+    for info, frame in avatars:
+        lost = frame.lost_roles
+        if lost:
+            count = f" ({len(info.devices)} devices)" if info.devices else ""
+            out.append(f"{info.display_name}{count}: lost {', '.join(lost)}")
+    return out
+
+
 def hud_lines(latency_ms: Mapping[str, Mapping[str, float]], fps: float, avatars: int,
-              mode: str, delay_ms: float | None, view: str) -> list[str]:
-    """The HUD's text: per-stage latency p50/p99 (ms), frame rate, avatar count, mode."""
+              mode: str, delay_ms: float | None, view: str,
+              devices: Iterable[tuple[AvatarInfo, AvatarFrame]] = ()) -> list[str]:
+    """The HUD's text: per-stage latency p50/p99 (ms), frame rate, avatar count, mode;
+    then the avatars (each with its newest frame) that have lost devices now."""
     mode_text = mode if delay_ms is None else f"{mode} (buffer {delay_ms:.0f} ms)"
     lines = [f"{avatars} avatar{'s' if avatars != 1 else ''}   {fps:.0f} fps   "
              f"{mode_text}   view: {view}",
@@ -174,4 +199,4 @@ def hud_lines(latency_ms: Mapping[str, Mapping[str, float]], fps: float, avatars
         s = latency_ms.get(stage)
         if s is not None:
             lines.append(f"{stage:<21}{s['p50']:6.1f}  {s['p99']:6.1f}")
-    return lines
+    return lines + device_lines(devices)

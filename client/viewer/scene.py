@@ -21,7 +21,7 @@ from posecast.client.viewer.camera import Camera, OrbitCamera, first_person, mir
 from posecast.client.viewer.interpolation import Interpolator, Mode, Sampled
 from posecast.client.viewer.renderer import AvatarDraw, PosedScene
 from posecast.client.viewer.skinning import FittedAvatar, SkeletonMismatchError, fit_avatar
-from posecast.protocol import AvatarBatch, AvatarInfo, AvatarRoster, ClockEstimator
+from posecast.protocol import AvatarBatch, AvatarFrame, AvatarInfo, AvatarRoster, ClockEstimator
 from posecast.solver.readers.gltf import SkinnedMesh, load_makehuman
 
 log = logging.getLogger(__name__)
@@ -128,6 +128,17 @@ class SpectatorScene:
             draws.append(AvatarDraw(fitted[1], s.rotations, s.root))
             samples.append(s)
         return SceneFrame(ids, draws, samples)
+
+    def lost(self, avatar_id: int) -> int:
+        """The avatar's devices its newest frame lacked (protocol.roles bits; 0 before
+        its first frame). The newest, not the drawn one: it says what is lost now."""
+        received = self.spectator.latest.get(avatar_id)
+        return 0 if received is None else int(received.batch.lost[received.row])
+
+    def newest(self) -> list[tuple[AvatarInfo, AvatarFrame]]:
+        """Every avatar of the roster that has a frame, with its newest, by id."""
+        roster, latest = self.spectator.roster, self.spectator.latest
+        return [(roster[a], latest[a].frame) for a in sorted(roster) if a in latest]
 
     @property
     def mode(self) -> Mode:

@@ -1,10 +1,12 @@
 // posecast's browser spectator: /?room=NAME joins the room as a spectator over the
 // websocket protocol, draws every avatar skinned with the desktop viewer's mesh, names
-// them, shows a latency HUD and reports what it presented to the server's /metrics.
+// them and their devices lost now, shows a latency HUD and reports what it presented to
+// the server's /metrics.
 
 import "./style.css";
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
 import { now } from "./clock.js";
+import { lostLines } from "./devices.js";
 import { ROOM_NAME_RULE, validRoomName } from "./protocol.js";
 import { LatencyWindow, Reporter } from "./report.js";
 import { Scene } from "./scene.js";
@@ -141,7 +143,7 @@ class Spectator {
       if (avatar && avatar.fitted.jointCount === batch.counts[b]) {
         this.latest.set(id, { rotations: batch.rotations, start,
           root: batch.roots.subarray(3 * b, 3 * b + 3), tCapture: batch.tCapture[b],
-          tReceived: tArrival, drawn: false });
+          tReceived: tArrival, lost: batch.lost[b], drawn: false });
       }
       start += batch.counts[b];
     });
@@ -152,6 +154,7 @@ class Spectator {
     for (const [id, f] of this.latest) {
       if (f.drawn) continue;
       this.scene.poseAvatar(id, f.rotations, f.start, f.root);
+      this.scene.setLost(id, f.lost);
       f.drawn = true;
       fresh.push(f);
     }
@@ -192,14 +195,20 @@ class Spectator {
     const ms = (w, p) => (w.count ? (1000 * w.percentile(p)).toFixed(1).padStart(7) : "      -");
     const fps = this.presents.length > 1 ? (this.presents.length - 1) /
       (this.presents[this.presents.length - 1] - this.presents[0]) : 0;
-    hudBox.textContent = [
+    const shown = [...this.scene.avatars].filter(([, a]) => a.mesh.visible)
+      .sort(([x], [y]) => x - y)
+      .map(([, a]) => ({ name: a.fitted.info.displayName, devices: a.fitted.info.devices,
+        lost: a.lost }));
+    const text = [
       `room ${room}   ${stats.drawn} avatar${stats.drawn === 1 ? "" : "s"}   ${fps.toFixed(0)} fps`,
       clock.synced ? `clock synced to the server's within ${(500 * clock.rtt).toFixed(2)} ms`
         : "clock: syncing with the server",
       "latency ms             p50      p99",
       `capture->received  ${ms(this.received, 50)}  ${ms(this.received, 99)}`,
       `capture->presented ${ms(this.presented, 50)}  ${ms(this.presented, 99)}`,
+      ...lostLines(shown),
     ].join("\n");
+    if (hudBox.textContent !== text) hudBox.textContent = text;
   }
 }
 

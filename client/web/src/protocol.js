@@ -8,7 +8,8 @@
 import { decode as unpack, encode as pack } from "@msgpack/msgpack";
 import { dequantizeRotations, RotationError } from "./quantize.js";
 
-export const PROTOCOL_VERSION = 1;
+// 2: rosters name each avatar's devices, batches say which of them are lost now
+export const PROTOCOL_VERSION = 2;
 export const MAX_MESSAGE_BYTES = 1 << 20; // what a viewer accepts (protocol.validation)
 export const MAX_JOINTS = 256;
 export const MAX_AVATARS = 1024;
@@ -19,7 +20,18 @@ const ROOM_NAME = /^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$/;
 export const ROOM_NAME_RULE = "room names are 1-64 letters, digits, '-', '_' or '.', " +
   "starting with a letter or digit";
 
+// protocol/roles.py's DEVICE_ROLES: bit i of a batch's `lost` is DEVICE_ROLES[i]
+export const DEVICE_ROLES = Object.freeze(["head", "hip", "left_hand", "right_hand",
+  "left_forearm", "right_forearm", "left_foot", "right_foot", "left_knee", "right_knee",
+  "chest"]);
+const LOST_BITS_LIMIT = 1 << DEVICE_ROLES.length;
+
 export class ProtocolError extends Error {}
+
+/** The roles whose bits are set, in DEVICE_ROLES order (protocol.roles.roles_of_bits). */
+export function rolesOfBits(bits) {
+  return DEVICE_ROLES.filter((_, i) => (bits >> i) & 1);
+}
 
 const LIMITS = {
   maxStrLength: 4096, maxBinLength: MAX_MESSAGE_BYTES, maxArrayLength: 4096,
@@ -126,7 +138,15 @@ function avatarInfo(a, index) {
     `${where}.rest_offsets: ${J} finite rows of 3 expected`);
   return { avatarId: count(a.avatar_id, `${where}.avatar_id`),
     displayName: text(a.display_name, `${where}.display_name`, 64),
-    jointNames: names, parents, restOffsets: offsets };
+    jointNames: names, parents, restOffsets: offsets, devices: devices(a.devices, where) };
+}
+
+/** A roster entry's devices: distinct known roles; absent (an older recording): none. */
+function devices(v, where) {
+  const roles = v === undefined ? [] : list(v, `${where}.devices`, DEVICE_ROLES.length);
+  need(roles.every((r) => DEVICE_ROLES.includes(r)) && new Set(roles).size === roles.length,
+    `${where}.devices: expected distinct device roles (${DEVICE_ROLES.join(", ")})`);
+  return roles;
 }
 
 const BATCH_COLUMNS = { avatar_ids: 8, seqs: 8, roots: 12, joint_counts: 2, t_capture: 8,
@@ -167,7 +187,20 @@ function avatarBatch(m) {
     tCapture: f64(m.t_capture, "avatar_batch.t_capture"),
     tServerReceive: f64(m.t_server_receive, "avatar_batch.t_server_receive"),
     tSolved: f64(m.t_solved, "avatar_batch.t_solved"),
-    tSent: time(m.t_sent, "avatar_batch.t_sent") };
+    tSent: time(m.t_sent, "avatar_batch.t_sent"), lost: lostBits(m.lost, n) };
+}
+
+/** The `lost` column: one uint16 of DEVICE_ROLES bits per avatar; absent (a version-1
+ * recording): nothing lost. */
+function lostBits(bytes, n) {
+  if (bytes === undefined) return new Uint16Array(n);
+  need(bytes instanceof Uint8Array && bytes.length === 2 * n,
+    `avatar_batch.lost: expected ${2 * n} bytes of packed <u2 for ${n} avatars`);
+  const v = view(bytes);
+  const out = Uint16Array.from({ length: n }, (_, b) => v.getUint16(2 * b, true));
+  need(out.every((bits) => bits < LOST_BITS_LIMIT),
+    `avatar_batch.lost: bits beyond the ${DEVICE_ROLES.length} device roles`);
+  return out;
 }
 
 // ------------------------------------------------------------------ field checks

@@ -1,10 +1,12 @@
 // The 3D view: each avatar a three.js SkinnedMesh (skinned on the GPU) sharing the
-// MakeHuman geometry, its name in an HTML label above its head, a floor grid and an
-// orbit camera that frames the room until the spectator moves it.
+// MakeHuman geometry, its name and devices (how many, which are lost now) in an HTML
+// label above its head, a floor grid and an orbit camera that frames the room until the
+// spectator moves it.
 
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 import { CSS2DObject, CSS2DRenderer } from "three/addons/renderers/CSS2DRenderer.js";
+import { deviceText } from "./devices.js";
 import { boneMatrices, labelAnchor, pose } from "./skinning.js";
 
 // the desktop viewer's colours (renderer.PALETTE, BACKGROUND), by avatar id
@@ -57,7 +59,7 @@ export class Scene {
     this.controls.enableDamping = true;
     this.autoFrame = true; // until the spectator takes the camera
     this.controls.addEventListener("start", () => { this.autoFrame = false; });
-    this.avatars = new Map(); // avatar id -> {mesh, label, bones, fitted}
+    this.avatars = new Map(); // avatar id -> {mesh, label, bones, fitted, devices, lost}
     this.resize(container);
     window.addEventListener("resize", () => this.resize(container));
   }
@@ -86,15 +88,31 @@ export class Scene {
     mesh.visible = false; // until its first frame
     const div = document.createElement("div");
     div.className = "name";
-    div.textContent = fitted.info.displayName; // text, never markup: the name is a player's
+    const who = Object.assign(document.createElement("span"), { className: "who",
+      textContent: fitted.info.displayName }); // text, never markup: the name is a player's
+    const devices = Object.assign(document.createElement("span"), { className: "devices" });
+    div.append(who, devices);
     div.style.borderColor = `rgb(${avatarColor(fitted.info.avatarId).map((c) => Math.round(255 * c)).join(",")})`;
     div.dataset.avatarId = String(fitted.info.avatarId);
     const label = new CSS2DObject(div);
     label.center.set(0.5, 1.0); // the label's bottom middle sits on the anchor
     label.visible = false;
     this.scene.add(mesh, label);
-    this.avatars.set(fitted.info.avatarId, { mesh, label, bones, fitted,
-      matrices: new Float64Array(16 * bones.length), posed: null });
+    this.avatars.set(fitted.info.avatarId, { mesh, label, bones, fitted, devices,
+      lost: -1, matrices: new Float64Array(16 * bones.length), posed: null });
+    this.setLost(fitted.info.avatarId, 0);
+  }
+
+  /** Which of avatar `id`'s devices its newest frame lacked (protocol.roles bits): the
+   * line under its name changes only when they do (16 avatars, every frame). */
+  setLost(id, bits) {
+    const a = this.avatars.get(id);
+    if (!a || a.lost === bits) return;
+    a.lost = bits;
+    const text = deviceText(a.fitted.info.devices, bits);
+    a.devices.textContent = text;
+    a.devices.hidden = !text;
+    a.devices.classList.toggle("lost", bits !== 0);
   }
 
   removeAvatar(id) {

@@ -1,12 +1,15 @@
-// The page's protocol, clock and skinning against Python's: tests/test_browser_js.py
-// writes what Python encodes and computes to POSECAST_JS_FIXTURE, runs this file with
-// node --test, then decodes in Python what this file writes to POSECAST_JS_OUT.
+// The page's protocol, clock, skinning and device wording against Python's:
+// tests/test_browser_js.py writes what Python encodes and computes to POSECAST_JS_FIXTURE,
+// runs this file with node --test, then decodes in Python what this file writes to
+// POSECAST_JS_OUT.
 import assert from "node:assert/strict";
 import { readFileSync, writeFileSync } from "node:fs";
 import { test } from "node:test";
 import { ClockEstimator } from "../src/clock.js";
+import { deviceText, lostLines } from "../src/devices.js";
 import {
   decodeMessage, encodeHello, encodeLeave, encodePing, encodeViewerReport, ProtocolError,
+  rolesOfBits,
 } from "../src/protocol.js";
 import { dequantizeRotations, RotationError } from "../src/quantize.js";
 import { bindSkeleton, boneMatrices, fitAvatar, labelAnchor, pose } from "../src/skinning.js";
@@ -41,6 +44,9 @@ test("server messages decode to Python's values", { skip }, () => {
     assert.deepEqual(Array.from(batch[js]), want[py]);
   }
   assert.equal(batch.tSent, want.t_sent);
+  assert.deepEqual(Array.from(batch.lost), want.lost);
+  assert.deepEqual(Array.from(batch.lost, rolesOfBits), want.lost_roles);
+  assert.deepEqual(Array.from(decodeMessage(bytes(fixture.batch.v1_wire)).lost), [0, 0]);
   const roster = decodeMessage(bytes(fixture.roster.wire));
   assert.deepEqual(roster.removed, fixture.roster.removed);
   assert.equal(roster.avatars.length, 1);
@@ -49,6 +55,10 @@ test("server messages decode to Python's values", { skip }, () => {
   assert.deepEqual(info.jointNames, fixture.roster.joint_names);
   assert.deepEqual(info.parents, fixture.roster.parents);
   assert.deepEqual(Array.from(info.restOffsets), fixture.roster.rest_offsets);
+  assert.deepEqual(info.devices, fixture.roster.devices);
+  assert.deepEqual(decodeMessage(bytes(fixture.roster.old_wire)).avatars[0].devices, []);
+  assert.throws(() => decodeMessage(bytes(fixture.roster.bad_wire)),
+    (err) => err instanceof ProtocolError && err.message.includes("avatars[0].devices"));
   assert.deepEqual(decodeMessage(bytes(fixture.pong)), { type: "pong", t0: 1.5, t1: 2.25, t2: 2.5 });
   assert.deepEqual(decodeMessage(bytes(fixture.error)),
     { type: "error", code: "invalid", message: "hello.room: no" });
@@ -60,6 +70,21 @@ test("malformed server messages are refused with a ProtocolError", { skip }, () 
     assert.throws(() => decodeMessage(bytes(wire)),
       (err) => err instanceof ProtocolError && err.message.includes(words), words);
   }
+});
+
+test("a batch's lost bits name the devices on the label and in the HUD", { skip }, () => {
+  const batch = decodeMessage(bytes(fixture.batch.wire));
+  const avatars = fixture.lost.avatars.map((a, b) => ({ ...a, lost: batch.lost[b] }));
+  // the HUD: the desktop viewer's lines, only for the avatar that lost some
+  assert.deepEqual(lostLines(avatars), fixture.lost.lines);
+  assert.deepEqual(lostLines(avatars.map((a) => ({ ...a, lost: 0 }))), []);
+  // the label under each name: its tracker set, and what it lost now
+  const [whole, partial] = avatars;
+  assert.equal(deviceText(whole.devices, whole.lost), "11 devices");
+  assert.equal(deviceText(partial.devices, partial.lost),
+    "6 devices — lost: hip, left_foot, chest");
+  assert.equal(deviceText([], 0), ""); // an older recording's avatar: no line
+  assert.equal(deviceText([], 1 << 6), "lost: left_foot");
 });
 
 test("the clock estimate follows protocol/clock.py sample by sample", { skip }, () => {
