@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -124,7 +125,7 @@ def run_eval(files: list[Path], solver: str, iterations: list[int] | None,
     if as_json:
         out = documents[0][2] if len(documents) == 1 else {
             "solver": solver, "runs": [d for _, _, d in documents]}
-        print(json.dumps(out))
+        print(json.dumps(_no_nan(out)))
     else:
         for limit, clips, _ in documents:
             print(format_table(clips, solver, limit, delay_ms, predictor if predict else None,
@@ -139,6 +140,18 @@ def _set_words(devices: tuple[str, ...], dropouts: DropoutSpec | None, naive: bo
     if dropouts is not None:
         words += f", dropouts {dropouts}"
     return words + (", naive body" if naive else "")
+
+
+def _no_nan(value: object) -> object:
+    """JSON has no NaN: a figure with nothing to average (no held-out device when every
+    device drives) is null."""
+    if isinstance(value, float) and math.isnan(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _no_nan(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_no_nan(v) for v in value]
+    return value
 
 
 def format_table(clips: list[ClipResult], solver: str, limit: int | None,

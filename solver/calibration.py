@@ -12,9 +12,9 @@ Two methods:
 Only the head and hands shape the body; every device then gets a *mount*: its pose in
 the frame of the bone it is strapped to, fixed at this frame (a forearm tracker follows
 only part of its bone's twist: ``FOREARM_TWIST_SHARE``; a knee tracker rides around the
-knee as it bends: ``KNEE_BEND_SHARE``, and turns outwards: ``KNEE_TURN_OUT``). The devices of the avatar's
-tracker set give the solver its targets through their mounts (``solver.tracking``); the
-others (held out in an evaluation) are only predicted through theirs.
+knee as it bends: ``KNEE_BEND_SHARE``, and turns outwards: ``KNEE_TURN_OUT``). The
+devices of the avatar's tracker set give the solver its targets through their mounts
+(``solver.tracking``); the others (held out in an evaluation) are only predicted.
 """
 
 from __future__ import annotations

@@ -455,7 +455,7 @@ def evaluate_bvh(motion: Motion, options: EvalOptions = EvalOptions(),
 
 def summarize(clips: list[ClipResult]) -> dict[str, float]:
     keys = ("mean_error_mm", "heldout_error_mm", "rotation_error_deg", "solve_us_p50")
-    out = {k: round(float(np.nanmean([getattr(c, k) for c in clips])), 2) for k in keys}
+    out = {k: _mean_of_given([getattr(c, k) for c in clips]) for k in keys}
     if all("jitter_m_s3" in c.extra for c in clips):
         out["jitter_m_s3"] = round(float(np.nanmean([c.extra["jitter_m_s3"] for c in clips])), 1)
     # tails and tracked-chain rotations, averaged over the clips that have them
@@ -470,6 +470,13 @@ def summarize(clips: list[ClipResult]) -> dict[str, float]:
     if lost:
         out["dropout_frames"] = int(sum(lost))
     return out
+
+
+def _mean_of_given(values: list[float]) -> float:
+    """The mean of the values that are numbers (NaN: a clip without any, e.g. no held-out
+    device when every device drives); NaN when none is."""
+    given = [v for v in values if not np.isnan(v)]
+    return round(float(np.mean(given)), 2) if given else float("nan")
 
 
 def summarize_p99(clips: list[ClipResult]) -> dict[str, float]:

@@ -211,3 +211,20 @@ def test_eval_json_reports_dropouts_and_steps(tmp_path: Path) -> None:
     doc = clip.as_json()
     assert doc["dropout_frames"] > 0 and doc["dropout_error_mm"] > 0.0
     assert 0.0 < doc["max_step_mm"] < 1000.0
+
+
+def test_devices_lost_from_the_first_frame_are_carried_from_the_t_pose(
+        recording: ViveRecording) -> None:
+    """A hip and an elbow tracker calibrated, then never seen again: the avatar is solved
+    from the T-pose's relation on (it once came out NaN, every frame unsendable)."""
+    solver = AvatarSolver(build_rig(load_makehuman().skeleton))
+    solver.calibrate(1, recording.devices, recording.positions[0], recording.rotations[0])
+    roles = tuple(r for r in recording.devices if r not in ("hip", "left_forearm"))
+    hip = recording.device("hip")
+    for f in range(1, 120):
+        lost, _ = solver.stage(1, roles, _walk(recording, roles, f), f / 90)
+        assert lost == (1 << 1) | (1 << 4)  # hip, left_forearm
+        pose = solver.solve_staged([1])
+        assert np.isfinite(pose.rotations).all() and np.isfinite(pose.root).all()
+    pelvis = solver.tracking.targets[solver.slot_order(1), 1, :3]
+    assert np.linalg.norm(pelvis - recording.positions[119, hip]) < 0.25

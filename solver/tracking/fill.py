@@ -308,7 +308,9 @@ def fill_batch(rows, dev, present, has, t, shape, state, targets, weights):
 
 def new_state(shape: np.ndarray, calibration: np.ndarray, has: np.ndarray) -> np.ndarray:
     """A tracking state for an avatar just calibrated: ``calibration`` (ND, 7) the bone
-    poses its devices gave at the T-pose, ``has`` (ND,) which it had."""
+    poses of every slot at the T-pose (the devices' where it had them), ``has`` (ND,)
+    which it had. Each device starts held to its anchor as it was then, so that one lost
+    from the first frame on is carried from there."""
     from posecast.solver.tracking.layout import (
         F_POS,
         F_ROT,
@@ -326,12 +328,28 @@ def new_state(shape: np.ndarray, calibration: np.ndarray, has: np.ndarray) -> np
         state[base + F_YAW] = shape[S_YAW0]
         state[base + F_ROT: base + F_ROT + 4] = flat_foot(shape, side, shape[S_YAW0])
     state[K_PEL_PREV: K_PEL_PREV + 3] = calibration[HIP, :3]
+    head_frame = np.concatenate([calibration[HEAD, :3], yaw_quat(shape[S_YAW0])])
+    anchors = {HIP: head_frame, HAND_L: calibration[HIP], HAND_L + 1: calibration[HIP],
+               CHEST: calibration[HEAD]}
+    for side in range(2):
+        anchors[ELBOW_L + side] = calibration[HAND_L + side]
+        anchors[KNEE_L + side] = calibration[FOOT_L + side]
     for d in range(ND):
         b = K_DEV + d * DEV_STRIDE
         state[b + D_BACK] = SETTLED
         state[b + D_BLEND] = RETURN_S
-        if has[d]:
+        if not has[d]:
+            continue
+        state[b + D_SEEN] = 1.0
+        state[b + D_MEAS: b + D_MEAS + 7] = calibration[d]
+        if d < MAIN:
             state[b + D_OUT: b + D_OUT + 7] = calibration[d]
-            state[b + D_MEAS: b + D_MEAS + 7] = calibration[d]
-            state[b + D_SEEN] = 1.0
+        # a steering device's D_OUT holds its weight: none until it is seen
+        if d in anchors:
+            a = anchors[d]
+            p, q = relative((a[0], a[1], a[2]), (a[3], a[4], a[5], a[6]),
+                            tuple(calibration[d, :3]), tuple(calibration[d, 3:]))
+            state[b + D_HELD: b + D_HELD + 3] = p
+            state[b + D_HELD + 3: b + D_HELD + 7] = q if d in (HIP, HAND_L, HAND_L + 1,
+                                                                CHEST) else (0, 0, 0, 1)
     return state
