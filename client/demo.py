@@ -304,12 +304,10 @@ async def run_players(url: str, players: int, seconds: float, motion: Path,
     what they captured. ``devices``: the players' tracker sets, in turn; ``dropouts``:
     each player loses devices at random (its own seed: seed + its number)."""
     sources: list[PoseSource] = []
-    for i in range(players):
-        source: PoseSource = BvhSource(motion, loop=True, rate_hz=HEADSET_HZ, offset=_spot(i),
-                                       start_frame=37 * i, smooth=True)
-        if devices:
-            source = TrackerSetSource(source, devices[i % len(devices)])
-        sources.append(source)
+    for i in range(players):  # the set simulated, not filtered frame by frame
+        sources.append(BvhSource(motion, loop=True, rate_hz=HEADSET_HZ, offset=_spot(i),
+                                 start_frame=37 * i, smooth=True,
+                                 devices=devices[i % len(devices)] if devices else None))
     if recorders is not None:  # the true poses of the set, before any loss
         recording = [RecordingSource(s) for s in sources[:MEASURED_PLAYERS]]
         sources[:len(recording)] = recording

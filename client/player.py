@@ -177,6 +177,9 @@ class PlayerStats:
 
     def count_devices(self, roles: tuple[str, ...]) -> None:
         """A frame with these devices was sent."""
+        if roles == self.devices:  # every frame of a player that lost nothing: done
+            self.lost_now = ()
+            return
         known = self.devices
         if any(r not in known for r in roles):
             known = self.devices = tuple(r for r in ROLES if r in known or r in roles)

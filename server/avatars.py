@@ -71,10 +71,14 @@ class AvatarSolver:
         eff = self.rig.effectors
         self.solver.solve(np.concatenate([gp[:, eff], gq[:, eff]], axis=-1), state)
         rows = TrackingRows(1)
-        frozen = np.zeros((0, 7))
-        frozen.flags.writeable = False  # as a decoded frame's poses are
-        for poses in (np.zeros((0, 7)), frozen):
-            rows.stage(0, np.zeros(0, dtype=np.intp), poses, 0.0)
+        # the argument types a stage meets: a decoded frame's poses and the cached slot
+        # index arrays are read-only, an evaluation's are not
+        for writable in (True, False):
+            poses, slots = np.zeros((0, 7)), np.zeros(0, dtype=np.intp)
+            for frozen in (False, True):
+                poses.flags.writeable = writable
+                slots.flags.writeable = not frozen
+                rows.stage(0, slots, poses, 0.0)
         rows.fill(np.zeros(1, dtype=np.intp))
         helper = self.helper()
         if helper is not None:  # its loop and the shared solve load now too (n = 0)
@@ -141,7 +145,7 @@ class AvatarSolver:
                                      "send a calibrate message (T-pose) first")
         slots = slots_of(roles)
         new: tuple[str, ...] = ()
-        if not self.tracking.has[slot, slots].all():
+        if not self.tracking.stage(slot, slots, poses, t):  # devices never seen before
             new = tuple(r for r, s in zip(roles, slots.tolist(), strict=True)
                         if not self.tracking.has[slot, s])
             for role in new:
@@ -150,7 +154,7 @@ class AvatarSolver:
                     self.rig, self._offsets[slot], self._rotations[slot], self._roots[slot],
                     role, row[:3], row[3:]))
             self._has_bits[avatar_id] = role_bits(self.devices(avatar_id))
-        self.tracking.stage(slot, slots, poses, t)
+            self.tracking.stage(slot, slots, poses, t)
         return self._has_bits[avatar_id] & ~_present_bits(roles), new
 
     def helper(self) -> SolveHelper | None:

@@ -56,7 +56,8 @@ class BvhSource:
 
     def __init__(self, path: str | Path, loop: bool = False,
                  rate_hz: float | None = None, offset: tuple[float, float] = (0.0, 0.0),
-                 start_frame: int = 0, smooth: bool = False) -> None:
+                 start_frame: int = 0, smooth: bool = False,
+                 devices: tuple[str, ...] | None = None) -> None:
         """``smooth``: sample the clip between its frames at the read's instant (position
         lerp, rotation slerp) instead of at the nearest frame, as a headset samples a
         body: at 90 Hz from 120 fps, nearest frames step 1, 2, 1 frames apart, a body
@@ -86,8 +87,13 @@ class BvhSource:
         # several players replaying one clip stand apart and move out of step
         shift = np.array([offset[0], 0.0, offset[1]])
         self.tpose_positions = self.tpose_positions + shift
-        # every frame's rows as a player sends them (position | quaternion)
-        self.poses = np.concatenate([positions + shift, rotations], axis=2)
+        # every frame's rows as a player sends them (position | quaternion), of the
+        # devices asked for (``devices``: a tracker set; the rest are never simulated)
+        self.roles = ROLES if devices is None else tuple(r for r in ROLES if r in devices)
+        keep = [ROLES.index(r) for r in self.roles]
+        self.tpose_positions = self.tpose_positions[keep]
+        self.tpose_rotations = self.tpose_rotations[keep]
+        self.poses = np.concatenate([positions + shift, rotations], axis=2)[:, keep]
         # a headset samples at its own rate (90 Hz for a Vive), not the capture's: replay
         # at rate_hz by stepping through the clip by time, nearest frame
         self.rate_hz = float(rate_hz or motion.fps)
@@ -131,7 +137,7 @@ class BvhSource:
         return int(self.poses.shape[0])
 
     def calibration(self) -> DeviceSample:
-        return DeviceSample.of(now(), ROLES, self.tpose_positions, self.tpose_rotations)
+        return DeviceSample.of(now(), self.roles, self.tpose_positions, self.tpose_rotations)
 
     def read(self) -> DeviceSample | None:
         if self.next_frame >= self.num_frames:
@@ -145,8 +151,8 @@ class BvhSource:
             self._position -= self.num_frames
         self.next_frame = round(self._position)
         if self.smooth:
-            return DeviceSample(now(), ROLES, self._between(at))
-        return DeviceSample(now(), ROLES, self.poses[f].copy())
+            return DeviceSample(now(), self.roles, self._between(at))
+        return DeviceSample(now(), self.roles, self.poses[f].copy())
 
     def _steps_to_next(self) -> Array:
         """(F, D, 7): each frame's rows subtracted from the next frame's (the last's next:

@@ -159,9 +159,9 @@ def _spread(parents, q, gq, canon, pre, post, lo, hi, chain, first, n, tq):
 
 @njit(cache=True)
 def solve_spine(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, chain, n, nt,
-                target, chest, chest_w, qsave):
+                target, tg, chest_w, qsave):
     """The spine chain (pelvis's child .. head, n joints): chain[:nt] is the torso (up to
-    the chest), chain[nt:n - 1] the neck. A chest tracker (``chest``, weight ``chest_w``
+    the chest), chain[nt:n - 1] the neck. A chest tracker (``tg[STEER_CHEST]``, weight ``chest_w``
     > 0) turns the torso towards its rotation, that share of the way."""
     head = chain[n - 1]
     tq = (target[3], target[4], target[5], target[6])
@@ -169,7 +169,7 @@ def solve_spine(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, chain, n,
     fk_joints(parents, offsets, q, gq, gp, chain, n)
     if chest_w > 0.0:
         _steer_torso(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, chain, n, nt,
-                     tq, chest, chest_w, qsave)
+                     tq, tg, chest_w, qsave)
         return
     base = chain[nt]  # the neck's base (the head itself on a rig without a neck)
     g = tq
@@ -201,7 +201,7 @@ def solve_spine(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, chain, n,
 
 @njit(cache=True)
 def _steer_torso(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, chain, n, nt, tq,
-                 chest, w, qsave):
+                 tg, w, qsave):
     """The torso turned to the chest tracker's rotation (share w of the way from the
     head's spread), the neck and head taking the rest of the head's turn."""
     for i in range(nt):
@@ -209,7 +209,7 @@ def _steer_torso(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, chain, n
         for k in range(4):
             qsave[j, k] = q[j, k]
     _spread(parents, q, gq, canon, pre, post, lo, hi, chain, 0, nt,
-            (chest[3], chest[4], chest[5], chest[6]))
+            (tg[STEER_CHEST, 3], tg[STEER_CHEST, 4], tg[STEER_CHEST, 5], tg[STEER_CHEST, 6]))
     for i in range(nt):
         j = chain[i]
         set_row4(q, j, nlerp(row4(qsave, j), row4(q, j), w))
@@ -401,10 +401,10 @@ def _swivel_within_limits(parents, offsets, q, gq, gp, pre, post, lo, hi, upper,
 
 
 @njit(cache=True)
-def _steered(Gu, offsets, pre, post, mid, theta, tau_prev, steer, gp, upper, nx, ny, nz,
+def _steered(Gu, offsets, pre, post, mid, theta, tau_prev, tg, ss, gp, upper, nx, ny, nz,
              psi, arm):
     """How far (radians) to turn the aimed limb about the upper-end line, from ``psi``,
-    to bring an elbow or knee tracker where it is seen: ``steer`` holds its position and
+    to bring an elbow or knee tracker where it is seen: ``tg[ss]`` holds its position and
     its mount (position in the mid bone's frame). Its position is compared, not the joint
     it implies: the mount's rotation follows the skin, and a joint inferred through it
     lay off the limb's line by more than the swivel's own error. The mount frame turns
@@ -416,19 +416,19 @@ def _steered(Gu, offsets, pre, post, mid, theta, tau_prev, steer, gp, upper, nx,
     else:
         frame = composed(row4(pre, mid), row4(post, mid), KNEE_BEND_SHARE * theta, 0.0, 0.0)
     E = trotate(Gu, row3(offsets, mid))
-    m = trotate(tmul(Gu, frame), (steer[3], steer[4], steer[5]))
+    m = trotate(tmul(Gu, frame), (tg[ss, 3], tg[ss, 4], tg[ss, 5]))
     P = (E[0] + m[0], E[1] + m[1], E[2] + m[2])
-    to = (steer[0] - gp[upper, 0], steer[1] - gp[upper, 1], steer[2] - gp[upper, 2])
+    to = (tg[ss, 0] - gp[upper, 0], tg[ss, 1] - gp[upper, 1], tg[ss, 2] - gp[upper, 2])
     d = _perp_angle(P[0], P[1], P[2], to[0], to[1], to[2], nx, ny, nz) - psi
     return math.atan2(math.sin(d), math.cos(d))
 
 
 @njit(cache=True)
 def solve_limb(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, upper, mid, end,
-               target, twist_in_mid, steer, steer_w):
+               target, twist_in_mid, tg, ss, steer_w):
     """Two-bone limb: upper (upper arm / thigh), mid (forearm / shin, hinge about its limit
     x axis, with a twist about the bone when twist_in_mid), end (hand / foot). An elbow
-    or knee tracker (``steer``: its position and its mount on the mid bone, weight
+    or knee tracker (``tg[ss]``: its position and its mount on the mid bone, weight
     ``steer_w`` > 0) turns the limb about the upper-end line towards it, that share of the
     way (``_steered``)."""
     tq = (target[3], target[4], target[5], target[6])
@@ -473,7 +473,7 @@ def solve_limb(parents, offsets, q, gq, gp, canon, pre, post, lo, hi, upper, mid
         if wb > 0.0:
             psi -= ELBOW_DOWN_SHARE * wb * _below(Gu, offsets, mid, psi, nx, ny, nz)
     if steer_w > 0.0:
-        psi += steer_w * _steered(Gu, offsets, pre, post, mid, theta, tau_prev, steer, gp,
+        psi += steer_w * _steered(Gu, offsets, pre, post, mid, theta, tau_prev, tg, ss, gp,
                                   upper, nx, ny, nz, psi, twist_in_mid)
     short = abs(dist - math.sqrt(w[0] ** 2 + w[1] ** 2 + w[2] ** 2))
     _swivel_within_limits(parents, offsets, q, gq, gp, pre, post, lo, hi, upper, mid, end,
@@ -603,19 +603,19 @@ def solve_analytic_one(parents, off, canon, pre, post, lo, hi, dofmask, pelvis, 
     gq, gp, scratch, upper, effs, slots, tree, qsave = work
     place_root(parents, off, qb, rootb, gq, gp, pelvis, tg[1])
     solve_spine(parents, off, qb, gq, gp, canon, pre, post, lo, hi, chains[0],
-                lengths[0], _neck_start(parents, chains), tg[0], tg[STEER_CHEST],
+                lengths[0], _neck_start(parents, chains), tg[0], tg,
                 w[STEER_CHEST], qsave)
     for c in (1, 2):  # arms: clavicle, upper arm, forearm, hand
         ch = chains[c]
         aim_clavicle(parents, off, qb, gq, gp, canon, pre, post, lo, hi, ch[0], ch[1],
                      ch[2], ch[3], tg[c + 1], CLAVICLE_SHARE)
         solve_limb(parents, off, qb, gq, gp, canon, pre, post, lo, hi, ch[1], ch[2],
-                   ch[3], tg[c + 1], True, tg[STEER_ELBOW + c - 1], w[STEER_ELBOW + c - 1])
+                   ch[3], tg[c + 1], True, tg, STEER_ELBOW + c - 1, w[STEER_ELBOW + c - 1])
     for c in (3, 4):  # legs: thigh, shin, foot
         ch = chains[c]
         fk_joints(parents, off, qb, gq, gp, ch, 1)
         solve_limb(parents, off, qb, gq, gp, canon, pre, post, lo, hi, ch[0], ch[1],
-                   ch[2], tg[c + 1], False, tg[STEER_KNEE + c - 3], w[STEER_KNEE + c - 3])
+                   ch[2], tg[c + 1], False, tg, STEER_KNEE + c - 3, w[STEER_KNEE + c - 3])
     total = 0
     if refine > 0:
         for c in range(chains.shape[0]):

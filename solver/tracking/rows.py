@@ -9,16 +9,48 @@ import functools
 from collections.abc import Iterable
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from posecast.solver.calibration import Calibration, Mount
-from posecast.solver.kernels import bone_targets
+from posecast.solver.kernels import row3, row4, tconj, tmul, trotate
 from posecast.solver.tracking.devices import DEVICES, ELBOW_L, KNEE_R, SLOT
 from posecast.solver.tracking.fill import fill_batch, new_state
 from posecast.solver.tracking.layout import ND, SHAPE_SIZE, STATE_SIZE
 from posecast.solver.tracking.shape import body_shape, bone_poses
 
 Array = NDArray[np.float64]
+
+
+@njit(cache=True)
+def stage_row(row, slots, poses, t, dev, present, has, mount_p, mount_q, times):
+    """``TrackingRows.stage`` over the arrays: each mounted device's bone pose through its
+    mount (an elbow's or knee's: its own position and its mount, which it steers by),
+    the present flags and the time. False if the frame has a device not mounted."""
+    for d in range(present.shape[1]):
+        present[row, d] = False
+    every = True
+    for i in range(slots.shape[0]):
+        s = slots[i]
+        if not has[row, s]:
+            every = False
+            continue
+        present[row, s] = True
+        dq = (poses[i, 3], poses[i, 4], poses[i, 5], poses[i, 6])
+        if ELBOW_L <= s <= KNEE_R:
+            for k in range(3):
+                dev[row, s, k] = poses[i, k]
+                dev[row, s, 3 + k] = mount_p[row, s, k]
+            dev[row, s, 6] = 0.0
+            continue
+        bq = tmul(dq, tconj(row4(mount_q[row], s)))
+        v = trotate(bq, row3(mount_p[row], s))
+        for k in range(3):
+            dev[row, s, k] = poses[i, k] - v[k]
+        for k in range(4):
+            dev[row, s, 3 + k] = bq[k]
+    times[row] = t
+    return every
 
 
 @functools.lru_cache(maxsize=256)  # bounded: the roles come from clients
@@ -83,25 +115,12 @@ class TrackingRows:
         self.mount_p[row, s] = mount.position
         self.mount_q[row, s] = mount.rotation
 
-    def stage(self, row: int, slots: NDArray[np.intp], poses: Array, t: float) -> None:
-        """A frame's device poses (n, 7) at ``slots`` (devices the avatar has not mounted
-        are left out), taken at time ``t`` (s), as the row's next frame."""
-        used = self.has[row, slots]
-        if not used.all():
-            slots, poses = slots[used], poses[used]
-        self.present[row] = False
-        self.present[row, slots] = True
-        out = np.empty((slots.shape[0], 7))
-        bone_targets(np.ascontiguousarray(poses), self.mount_p[row, slots],
-                     self.mount_q[row, slots], out)
-        # an elbow or knee tracker steers by its own position and its mount
-        limb = (slots >= ELBOW_L) & (slots <= KNEE_R)
-        if limb.any():
-            out[limb, :3] = poses[limb, :3]
-            out[limb, 3:6] = self.mount_p[row, slots[limb]]
-            out[limb, 6] = 0.0
-        self.dev[row, slots] = out
-        self.t[row] = t
+    def stage(self, row: int, slots: NDArray[np.intp], poses: Array, t: float) -> bool:
+        """A frame's device poses (n, 7) at ``slots``, taken at time ``t`` (s), as the
+        row's next frame; devices the avatar has not mounted are left out (False when
+        the frame has any). One compiled call: a server stages every frame it reads."""
+        return bool(stage_row(row, slots, poses, t, self.dev, self.present, self.has,
+                              self.mount_p, self.mount_q, self.t))
 
     def lost(self, row: int) -> NDArray[np.bool_]:
         """(ND,) the devices the avatar uses that its newest frame lacks."""
