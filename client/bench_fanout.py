@@ -350,7 +350,7 @@ def _service(processes: int, players: int) -> Iterator[Service]:
         pipe, child = ctx.Pipe()
         process = ctx.Process(target=_players_on, args=(
             first, cores, child, servers[0].url, players, 24 * 3600.0,
-            builtin_motion_path(), ()), daemon=True)
+            builtin_motion_path(), (), None, None), daemon=True)
         process.start()
         pipe.send("go")
         if len(cores) >= 2:

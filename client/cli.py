@@ -149,9 +149,12 @@ def _parser() -> argparse.ArgumentParser:
     ev.add_argument("--naive", action="store_true",
                     help="the naive baseline for body parts without a device: pelvis "
                          "straight under the head, legs straight down, feet on the floor")
-    ev.add_argument("--cross-validate", action="store_true",
+    ev.add_argument("--cross-validate", nargs="?", const="calibration", default=None,
+                    choices=("calibration", "body"), metavar="calibration|body",
                     help="leave one clip out: score each Vive recording with the calibration "
-                         "constants fitted on the others (at least two recordings)")
+                         "constants fitted on the others (at least two recordings); 'body': "
+                         "each clip (mocap or Vive) at 3 and 4 points with the body model's "
+                         "constants chosen on the others")
     ev.add_argument("--json", action="store_true", help="print one JSON document")
 
     sub.add_parser("warm", help="compile the solver kernels now, into numba's on-disk cache "
@@ -615,6 +618,19 @@ def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
         return 0
     if args.command in ("demo", "bench"):  # before their processes start, each would compile
         warm_kernels(notice)
+    if args.command == "eval" and args.cross_validate == "body":
+        from posecast.client.crossval_body_command import run_cross_validate_body
+
+        return run_cross_validate_body(args.files, args.solver, args.max_iterations, args.json,
+                                       given=[flag for flag, on in (
+                                           ("--delay-ms", args.delay_ms is not None),
+                                           ("--predict", args.predict),
+                                           ("--map", args.map is not None),
+                                           ("--dropouts", args.dropouts is not None),
+                                           ("--naive", args.naive),
+                                           ("--smoothing", args.smoothing != 0.0),
+                                           ("--devices", args.devices != PRESETS[DEFAULT_SET]))
+                                           if on])
     if args.command == "eval" and args.cross_validate:
         from posecast.client.crossval_command import run_cross_validate
 

@@ -119,20 +119,31 @@ async def report_spectator(spectator: Spectator, status: StatusLine) -> None:
     shown: int | None = None
     waiting_said = -math.inf
     reconnects = spectator.stats.reconnects
-    while True:
+
+    def say_players(players: int) -> None:
+        status.say(f"{players} player{'s' if players != 1 else ''} in room {room!r}")
+
+    try:
+        while True:
+            players = len(spectator.latest)
+            t = time.monotonic()
+            if spectator.stats.reconnects != reconnects:  # a new session: say the room again
+                reconnects, shown = spectator.stats.reconnects, None
+            if players == 0 and t - waiting_said >= WAITING_EVERY_S:
+                waiting_said = t
+                status.say(f"waiting for players in room {room!r} on {url} "
+                           f"(nobody is playing there yet; room names are case-sensitive)")
+            elif players and players != shown:
+                waiting_said = -math.inf
+                say_players(players)
+            shown = players
+            await asyncio.sleep(POLL_S)
+    finally:
+        # a short view (--frames N) can end between two looks: its log still names
+        # the players it showed
         players = len(spectator.latest)
-        t = time.monotonic()
-        if spectator.stats.reconnects != reconnects:  # a new session: say the room again
-            reconnects, shown = spectator.stats.reconnects, None
-        if players == 0 and t - waiting_said >= WAITING_EVERY_S:
-            waiting_said = t
-            status.say(f"waiting for players in room {room!r} on {url} "
-                       f"(nobody is playing there yet; room names are case-sensitive)")
-        elif players and players != shown:
-            waiting_said = -math.inf
-            status.say(f"{players} player{'s' if players != 1 else ''} in room {room!r}")
-        shown = players
-        await asyncio.sleep(POLL_S * 10)
+        if players and players != shown:
+            say_players(players)
 
 
 def view_summary(viewer: ViewerStats | None, spectator: SpectatorStats | None,

@@ -55,6 +55,7 @@ from posecast.solver.prediction import (
 from posecast.solver.readers.gltf import load_makehuman
 from posecast.solver.rig import Rig, build_rig, global_pose
 from posecast.solver.smoothing import SlerpSmoother
+from posecast.solver.tracking.body_model import SHIPPED, BodyModel
 from posecast.solver.tracking.devices import BONES, DEFAULT_SET, DEVICES, PRESETS, SLOT
 from posecast.solver.tracking.dropouts import DropoutSpec, dropout_mask
 from posecast.solver.tracking.rows import TrackingRows, slots_of
@@ -113,6 +114,7 @@ class EvalOptions:
     devices: tuple[str, ...] = PRESETS[DEFAULT_SET]  # the tracker set that drives
     dropouts: DropoutSpec | None = None  # devices lost at random
     naive: bool = False  # the baseline body model: pelvis under the head, legs straight
+    body: BodyModel = SHIPPED  # the body model's constants
 
 
 @dataclass
@@ -151,7 +153,7 @@ def _solve_sequence(solver: Solver, cal: Calibration, stream: Stream, state: Pos
     F = stream.poses.shape[0]
     J = state.rotations.shape[1]
     rows = TrackingRows(1)
-    rows.calibrate(0, cal, stream.names, floor, options.naive, first)
+    rows.calibrate(0, cal, stream.names, floor, options.naive, first, options.body)
     slots = slots_of(stream.names)
     row = np.zeros(1, dtype=np.intp)
     offsets = cal.offsets[None]

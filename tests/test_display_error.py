@@ -16,8 +16,7 @@ from posecast.client.display_error import (
     DisplayError,
     measure_display_error,
 )
-from posecast.client.sources.base import ROLES
-from posecast.client.sources.bvh_source import BvhSource
+from posecast.client.sources.bvh_source import ROLES, BvhSource
 from posecast.client.viewer.interpolation import Mode
 from posecast.protocol import AvatarBatch
 from posecast.server.avatars import AvatarSolver

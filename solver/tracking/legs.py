@@ -28,13 +28,18 @@ from posecast.solver.tracking.layout import (
     K_PEL_PREV,
     K_PEL_VEL,
     S_ANKLE,
+    S_CROUCH,
     S_FLAT_FOOT,
     S_FLOOR,
     S_G0_PELVIS,
     S_HIP,
+    S_LEAD,
     S_LEG,
     S_NAIVE,
+    S_REACH,
     S_STAND_PELVIS,
+    S_STEP_DIST,
+    S_STEP_TIME,
 )
 from posecast.solver.tracking.poses import (
     heading,
@@ -49,18 +54,12 @@ from posecast.solver.tracking.poses import (
     yaw_quat,
 )
 
-# A planted foot steps when the hip's footprint is this far (m) from it, or the body has
-# turned STEP_YAW (rad) away from it (a turn counts as STEP_DIST / STEP_YAW m a radian).
-STEP_DIST = 0.25
+# A planted foot steps when the hip's footprint is BodyModel.step_dist (m) from it, or the
+# body has turned STEP_YAW (rad) away from it (a turn counts as step_dist / STEP_YAW m a
+# radian); the rest of the stepping's constants are BodyModel's too (shape[S_MODEL:]).
 STEP_YAW = 0.6
-STEP_TIME = 0.35  # s a step takes
 STEP_HEIGHT = 0.06  # m the foot rises mid-step
-LEAD = 0.5  # a step lands this share of a step's time ahead of the moving hips
 VEL_TAU = 0.1  # s: the hips' velocity is smoothed over this
-# Below this share of its standing height the pelvis is crouched or seated: the feet stay
-# planted unless the hips are REACH leg lengths away from one (horizontally).
-CROUCH = 0.85
-REACH = 0.5
 MOVING = 0.3  # m/s: a foot lost faster than this was stepping, and lands
 AIR = 0.05  # m: a foot lost this high above its standing height lands
 
@@ -114,7 +113,7 @@ def lose_foot(shape, state, side, t, speed):
     base = K_FEET + side * FOOT_STRIDE
     standing = shape[S_FLOOR] + shape[S_ANKLE]
     if speed > MOVING or state[base + F_POS + 1] > standing + AIR:
-        _start_step(state, side, t, STEP_TIME)
+        _start_step(state, side, t, shape[S_STEP_TIME])
 
 
 @njit(cache=True)
@@ -145,7 +144,7 @@ def step_feet(shape, state, pel_p, pel_q, t, dt, tracked_l, tracked_r):
         if state[base + F_SWING] > 0.0:
             length = state[base + F_LEN]
             x = (t - state[base + F_T0]) / length
-            ahead = LEAD * length * max(1.0 - x, 0.0)
+            ahead = shape[S_LEAD] * length * max(1.0 - x, 0.0)
             goal = (home[0] + state[K_PEL_VEL] * ahead, home[1],
                     home[2] + state[K_PEL_VEL + 2] * ahead)
             if x >= 1.0:
@@ -167,7 +166,7 @@ def step_feet(shape, state, pel_p, pel_q, t, dt, tracked_l, tracked_r):
     if naive or moving:
         return
     # one planted, untracked foot at a time steps: the one the hips left furthest
-    crouched = pel_p[1] < CROUCH * shape[S_STAND_PELVIS]
+    crouched = pel_p[1] < shape[S_CROUCH] * shape[S_STAND_PELVIS]
     worst, which, far = 0.0, -1, False
     for side in range(2):
         if tracked[side]:
@@ -175,9 +174,9 @@ def step_feet(shape, state, pel_p, pel_q, t, dt, tracked_l, tracked_r):
         base = K_FEET + side * FOOT_STRIDE
         home = footprint(shape, side, pel_p, yaw)
         gap = math.hypot(home[0] - state[base + F_POS], home[2] - state[base + F_POS + 2])
-        far = far or gap > REACH * shape[S_LEG]
-        gap += abs(wrap(yaw - state[base + F_YAW])) * STEP_DIST / STEP_YAW
+        far = far or gap > shape[S_REACH] * shape[S_LEG]
+        gap += abs(wrap(yaw - state[base + F_YAW])) * shape[S_STEP_DIST] / STEP_YAW
         if gap > worst:
             worst, which = gap, side
-    if which >= 0 and ((worst > STEP_DIST and not crouched) or far):
-        _start_step(state, which, t, STEP_TIME)
+    if which >= 0 and ((worst > shape[S_STEP_DIST] and not crouched) or far):
+        _start_step(state, which, t, shape[S_STEP_TIME])

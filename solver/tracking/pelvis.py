@@ -1,6 +1,6 @@
 """The body model's pelvis when no hip tracker says where it is: under the head, the
-torso leaning back as the head drops (a squat, sitting down), turned to a heading that
-follows the head's without its quick glances."""
+torso leaning back as the head drops (a squat, sitting down; ``BodyModel.drop_back``),
+turned to a heading that follows the head's without its quick glances."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from posecast.solver.kernels import taxis_angle, tconj, tmul, trotate
 from posecast.solver.tracking.layout import (
     K_PEL_ADAPT,
     K_PEL_YAW,
+    S_DROP_BACK,
     S_G0_HEAD,
     S_G0_PELVIS,
     S_HEAD_TO_PELVIS,
@@ -23,9 +24,6 @@ from posecast.solver.tracking.poses import add, heading, read3, read4, wrap, yaw
 # How fast (1/s) the pelvis's heading follows the head's: a glance over the shoulder
 # turns the head, not the hips.
 YAW_RATE = 20.0
-# How far (m) the pelvis moves back, per metre the head is below its standing height:
-# squatting and sitting down push the hips back while the head stays over the feet.
-DROP_BACK = 0.5
 # the most the torso leans (share of its length the pelvis may move back)
 MAX_LEAN = 0.9
 ADAPT_S = 2.0  # how fast (s) the offset a seen hip tracker shows is learned
@@ -48,7 +46,7 @@ def model_pelvis(shape, state, head_p, head_q, dt):
     Y = yaw_quat(yaw)
     length = max(-h2p[1], 1e-3)
     drop = max(shape[S_STAND_HEAD] - head_p[1], 0.0)
-    back = min(DROP_BACK * drop, MAX_LEAN * length)
+    back = min(shape[S_DROP_BACK] * drop, MAX_LEAN * length)
     lean = math.asin(back / length)
     left = trotate(Y, (1.0, 0.0, 0.0))
     tilt = taxis_angle(left[0], left[1], left[2], lean)  # the torso bends forward

@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 
 from posecast.solver.calibration import Calibration, Mount
 from posecast.solver.kernels import row3, row4, tconj, tmul, trotate
+from posecast.solver.tracking.body_model import SHIPPED, BodyModel
 from posecast.solver.tracking.devices import DEVICES, ELBOW_L, KNEE_R, SLOT
 from posecast.solver.tracking.fill import fill_batch, new_state
 from posecast.solver.tracking.layout import ND, SHAPE_SIZE, STATE_SIZE
@@ -90,18 +91,20 @@ class TrackingRows:
             setattr(self, name, np.concatenate([a, a.copy()]))
 
     def calibrate(self, row: int, cal: Calibration, devices: Iterable[str] | None = None,
-                  floor: float = 0.0, naive: bool = False, first: Array | None = None
-                  ) -> None:
+                  floor: float = 0.0, naive: bool = False, first: Array | None = None,
+                  model: BodyModel = SHIPPED) -> None:
         """Row ``row`` tracks an avatar of this calibration from now on, with the devices
         it has mounts for (or those of ``devices`` it has). ``first`` (ND, 7): the bone
         poses the devices give when tracking starts, where they differ from the
-        calibration pose's (a mocap clip's first frame); ``naive``: the baseline model."""
+        calibration pose's (a mocap clip's first frame); ``naive``: the baseline model;
+        ``model``: the body model's constants."""
         self.has[row] = False
         self.present[row] = False
         for name in cal.mounts if devices is None else devices:
             if name in cal.mounts:
                 self.mount(row, name, cal.mounts[name])
-        self.shape[row] = body_shape(cal.rig, cal.offsets, cal.pose, cal.root, floor, naive)
+        self.shape[row] = body_shape(cal.rig, cal.offsets, cal.pose, cal.root, floor,
+                                     naive, model)
         start = bone_poses(cal.rig, cal.offsets, cal.pose, cal.root)
         if first is not None:
             start[self.has[row]] = first[self.has[row]]

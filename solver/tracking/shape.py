@@ -8,6 +8,7 @@ from numpy.typing import NDArray
 
 from posecast.solver import rotations as R
 from posecast.solver.rig import Rig, global_pose
+from posecast.solver.tracking.body_model import SHIPPED, BodyModel
 from posecast.solver.tracking.devices import BONES
 from posecast.solver.tracking.layout import (
     S_ANKLE,
@@ -36,10 +37,11 @@ _ARM_DOWN = (R.between([1.0, 0.0, 0.0], [0.0, -1.0, 0.0]),
 
 
 def body_shape(rig: Rig, offsets: Array, pose: Array, root: Array, floor: float = 0.0,
-               naive: bool = False) -> Array:
+               naive: bool = False, model: BodyModel = SHIPPED) -> Array:
     """The body constants of an avatar with these bone ``offsets`` calibrated in ``pose``
-    (local rotations) at ``root``, standing on a floor at height ``floor``; ``naive``:
-    the baseline model (pelvis straight under the head, legs straight down)."""
+    (local rotations) at ``root``, standing on a floor at height ``floor``, moving as
+    ``model`` says; ``naive``: the baseline model (pelvis straight under the head, legs
+    straight down)."""
     sk = rig.skeleton.with_offsets(offsets)
     cq, cp = global_pose(sk, rig.canonical, np.zeros(3))
     gq, gp = global_pose(sk, pose, root)
@@ -74,6 +76,7 @@ def body_shape(rig: Rig, offsets: Array, pose: Array, root: Array, floor: float 
     s[S_STAND_PELVIS] = floor + pelvis[1] - lowest
     s[S_YAW0] = yaw0
     s[S_NAIVE] = 1.0 if naive else 0.0
+    model.write(s)
     return s
 
 
