@@ -18,7 +18,7 @@ from posecast.solver.readers.bvh import read_bvh
 from posecast.solver.readers.vive import read_vive
 from posecast.solver.tracking.body_model import CANDIDATES, SHIPPED, BodyModel
 from posecast.solver.tracking.devices import PRESETS
-from posecast.solver.tracking.layout import S_MODEL, SHAPE_SIZE
+from posecast.solver.tracking.layout import S_MODEL, S_REACH, S_STEP_DIST, SHAPE_SIZE
 
 ROOT = Path(__file__).resolve().parents[1]
 WALK = ROOT / "client" / "assets" / "cmu_02_01_walk.bvh"
@@ -27,7 +27,7 @@ WALK = ROOT / "client" / "assets" / "cmu_02_01_walk.bvh"
 def test_the_model_s_constants_reach_the_kernels_through_the_shape() -> None:
     shape = np.zeros(SHAPE_SIZE)
     BodyModel(step_dist=0.11, reach=0.77).write(shape)
-    assert shape[S_MODEL + 1] == 0.11 and shape[S_MODEL + 5] == 0.77
+    assert shape[S_STEP_DIST] == 0.11 and shape[S_REACH] == 0.77
     assert shape[S_MODEL] == SHIPPED.drop_back
     # and they change what the body does: on a walk, feet that step only 1 m behind
     # the hips are far from the performer's feet, the shipped ones are not

@@ -23,6 +23,13 @@ class BodyModel:
     # height: squatting and sitting down push the hips back while the head stays over
     # the feet.
     drop_back: float = 0.5
+    # The pelvis turns to the head's heading only where the head is turned more than
+    # ``yaw_slack`` (rad) from it, closing that excess at ``yaw_rate`` (1/s): a glance
+    # at a hand or over the shoulder turns the head, not the hips.
+    yaw_slack: float = 0.0
+    yaw_rate: float = 20.0
+    # How far (m) below the head joint the head nods and tilts: the base of the neck.
+    neck: float = 0.1
     # A planted foot steps when the hip's footprint is this far (m) from it.
     step_dist: float = 0.35
     # s a step takes: the clips would choose ever quicker steps (feet that are where they
@@ -50,6 +57,9 @@ SHIPPED = BodyModel()
 # far apart as the clips can tell (step_time: no quicker than the shipped, see above).
 CANDIDATES: dict[str, tuple[float, ...]] = {
     "drop_back": (0.3, 0.5, 0.7),
+    "yaw_slack": (0.0, 0.3, 0.6),
+    "yaw_rate": (5.0, 20.0, 50.0),
+    "neck": (0.0, 0.1, 0.2),
     "step_dist": (0.25, 0.35, 0.45),
     "step_time": (0.25, 0.3, 0.35),
     "lead": (0.25, 0.5, 1.0),

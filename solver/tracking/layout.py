@@ -27,12 +27,15 @@ S_YAW0 = 51  # the body's heading at calibration (rad about +y, 0 = facing +z)
 S_NAIVE = 52  # 1: the naive baseline (pelvis under the head, legs straight down)
 S_MODEL = 53  # the body model's constants (body_model.FIELDS, in order):
 S_DROP_BACK = S_MODEL
-S_STEP_DIST = S_MODEL + 1
-S_STEP_TIME = S_MODEL + 2
-S_LEAD = S_MODEL + 3
-S_CROUCH = S_MODEL + 4
-S_REACH = S_MODEL + 5
-SHAPE_SIZE = S_MODEL + 6
+S_YAW_SLACK = S_MODEL + 1
+S_YAW_RATE = S_MODEL + 2
+S_NECK = S_MODEL + 3
+S_STEP_DIST = S_MODEL + 4
+S_STEP_TIME = S_MODEL + 5
+S_LEAD = S_MODEL + 6
+S_CROUCH = S_MODEL + 7
+S_REACH = S_MODEL + 8
+SHAPE_SIZE = S_MODEL + 9
 
 # --- state: what the tracking remembers from frame to frame -----------------------------
 K_T = 0  # the last frame's time (s)

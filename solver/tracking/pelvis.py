@@ -17,13 +17,13 @@ from posecast.solver.tracking.layout import (
     S_G0_PELVIS,
     S_HEAD_TO_PELVIS,
     S_NAIVE,
+    S_NECK,
     S_STAND_HEAD,
+    S_YAW_RATE,
+    S_YAW_SLACK,
 )
 from posecast.solver.tracking.poses import add, heading, read3, read4, wrap, yaw_quat
 
-# How fast (1/s) the pelvis's heading follows the head's: a glance over the shoulder
-# turns the head, not the hips.
-YAW_RATE = 20.0
 # the most the torso leans (share of its length the pelvis may move back)
 MAX_LEAN = 0.9
 ADAPT_S = 2.0  # how fast (s) the offset a seen hip tracker shows is learned
@@ -41,17 +41,25 @@ def model_pelvis(shape, state, head_p, head_q, dt):
         state[K_PEL_YAW] = head_yaw
         Y = yaw_quat(head_yaw)
         return (head_p[0], head_p[1] + h2p[1], head_p[2]), tmul(Y, pelvis0)
-    yaw = state[K_PEL_YAW] + (1.0 - math.exp(-dt * YAW_RATE)) * wrap(head_yaw - state[K_PEL_YAW])
+    off = wrap(head_yaw - state[K_PEL_YAW])
+    excess = math.copysign(max(abs(off) - shape[S_YAW_SLACK], 0.0), off)
+    yaw = state[K_PEL_YAW] + (1.0 - math.exp(-dt * shape[S_YAW_RATE])) * excess
     state[K_PEL_YAW] = wrap(yaw)
     Y = yaw_quat(yaw)
-    length = max(-h2p[1], 1e-3)
-    drop = max(shape[S_STAND_HEAD] - head_p[1], 0.0)
+    # the head nods and tilts about the base of the neck: that point, not the head
+    # joint, sits on the torso (looking down at a hand moves the head forward, not the
+    # hips back)
+    neck = shape[S_NECK]
+    base = add(head_p, trotate(tmul(head_q, tconj(g0)), (0.0, -neck, 0.0)))
+    rest = (h2p[0], h2p[1] + neck, h2p[2])  # the neck's base to the pelvis, upright
+    length = max(-rest[1], 1e-3)
+    drop = max(shape[S_STAND_HEAD] - neck - base[1], 0.0)
     back = min(shape[S_DROP_BACK] * drop, MAX_LEAN * length)
     lean = math.asin(back / length)
     left = trotate(Y, (1.0, 0.0, 0.0))
     tilt = taxis_angle(left[0], left[1], left[2], lean)  # the torso bends forward
     turn = tmul(tilt, Y)
-    return add(head_p, trotate(turn, h2p)), tmul(turn, pelvis0)
+    return add(base, trotate(turn, rest)), tmul(turn, pelvis0)
 
 
 @njit(cache=True)
