@@ -149,12 +149,12 @@ def _parser() -> argparse.ArgumentParser:
     ev.add_argument("--naive", action="store_true",
                     help="the naive baseline for body parts without a device: pelvis "
                          "straight under the head, legs straight down, feet on the floor")
-    ev.add_argument("--cross-validate", nargs="?", const="calibration", default=None,
-                    choices=("calibration", "body"), metavar="calibration|body",
+    ev.add_argument("--cross-validate", action="store_true",
                     help="leave one clip out: score each Vive recording with the calibration "
-                         "constants fitted on the others (at least two recordings); 'body': "
-                         "each clip (mocap or Vive) at 3 and 4 points with the body model's "
-                         "constants chosen on the others")
+                         "constants fitted on the others (at least two recordings)")
+    ev.add_argument("--cross-validate-body", action="store_true",
+                    help="leave one clip out: score each clip (mocap or Vive) at 3 and 4 "
+                         "points with the body model's constants chosen on the others")
     ev.add_argument("--json", action="store_true", help="print one JSON document")
 
     sub.add_parser("warm", help="compile the solver kernels now, into numba's on-disk cache "
@@ -618,7 +618,7 @@ def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
         return 0
     if args.command in ("demo", "bench"):  # before their processes start, each would compile
         warm_kernels(notice)
-    if args.command == "eval" and args.cross_validate == "body":
+    if args.command == "eval" and args.cross_validate_body:
         from posecast.client.crossval_body_command import run_cross_validate_body
 
         return run_cross_validate_body(args.files, args.solver, args.max_iterations, args.json,
@@ -629,6 +629,7 @@ def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
                                            ("--dropouts", args.dropouts is not None),
                                            ("--naive", args.naive),
                                            ("--smoothing", args.smoothing != 0.0),
+                                           ("--cross-validate", args.cross_validate),
                                            ("--devices", args.devices != PRESETS[DEFAULT_SET]))
                                            if on])
     if args.command == "eval" and args.cross_validate:

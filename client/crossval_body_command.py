@@ -1,4 +1,4 @@
-"""`posecast eval --cross-validate body FILE...`: leave-one-clip-out over the body
+"""`posecast eval --cross-validate-body FILE...`: leave-one-clip-out over the body
 model's constants, on mocap clips (.bvh) and Vive recordings (.csv) together.
 
 Each clip is scored at 3 points (head and hands) and 4 (+ hip) with the constants chosen
@@ -25,7 +25,7 @@ from posecast.solver.tracking.body_model import SHIPPED
 
 
 def _usage(msg: str) -> int:
-    print(f"posecast eval: --cross-validate body {msg}", file=sys.stderr)
+    print(f"posecast eval: --cross-validate-body {msg}", file=sys.stderr)
     return 2
 
 
@@ -61,7 +61,7 @@ def run_cross_validate_body(files: list[Path], solver: str, iterations: list[int
         clips.append(clip)
         names.append((str(path), kind))
     if len(clips) < 2:
-        print("posecast eval: --cross-validate body leaves one clip out at a time: it needs "
+        print("posecast eval: --cross-validate-body leaves one clip out at a time: it needs "
               f"at least two readable clips, got {len(clips)}", file=sys.stderr)
         return 1 if failures else 2
     options = EvalOptions(solver, SolverOptions(max_iterations=iterations[0] if iterations

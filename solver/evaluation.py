@@ -211,6 +211,7 @@ class Reconstruction:
     chain: list[int] = field(default_factory=list)
     lost: NDArray[np.bool_] | None = None  # (F, D) which driving device was lost when
     lost_points: list[int] = field(default_factory=list)  # (D,) each one's scored point
+    driving: tuple[str, ...] = ()  # (D,) the driving devices, in the order of ``lost``
 
     def deltas(self, lags: int) -> SequenceDeltas:
         """The solved rotations' and roots' deltas, computed once for every predictor."""
@@ -348,7 +349,8 @@ def reconstruct_vive(rec: ViveRecording, options: EvalOptions = EvalOptions(),
         resolve=resolve, solve_us_p50=float(np.median(times) * 1e6),
         lag_ms=float(np.mean(lags) / rec.fps * 1000.0),
         extra={"driving_error_mm": float(driving_error.mean()), "scale": cal.scale},
-        lost=stream.lost if options.dropouts is not None else None, lost_points=drive)
+        lost=stream.lost if options.dropouts is not None else None, lost_points=drive,
+        driving=stream.names)
 
 
 def evaluate_vive(rec: ViveRecording, options: EvalOptions = EvalOptions(),
@@ -418,7 +420,7 @@ def reconstruct_bvh(motion: Motion, options: EvalOptions = EvalOptions(),
         lag_ms=float(np.mean(lags) / motion.fps * 1000.0),
         chain=tracked_chain(sk.parents, eff),
         lost=stream.lost if options.dropouts is not None else None,
-        lost_points=[int(j) for j in eff])
+        lost_points=[int(j) for j in eff], driving=stream.names)
 
 
 def performer_calibration(rig: Rig, offsets: NDArray[np.float64], head_p: NDArray[np.float64],

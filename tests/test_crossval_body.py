@@ -67,7 +67,7 @@ def test_each_fold_chooses_on_the_other_clips_only() -> None:
 
 def _cli(*args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", "posecast.client.cli", "eval",
-                           "--cross-validate", "body", *args], capture_output=True,
+                           "--cross-validate-body", *args], capture_output=True,
                           text=True, timeout=900)
 
 

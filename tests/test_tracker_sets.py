@@ -41,6 +41,11 @@ def test_sets_are_presets_or_role_lists_with_head_and_hands() -> None:
     # any order, spaces, repeats: slot order out
     assert parse_devices(" right_hand,chest,head ,left_hand,head") == (
         "head", "left_hand", "right_hand", "chest")
+    # a preset with more roles
+    assert parse_devices("6,chest") == (*PRESETS["6"][:1], "hip", "left_hand", "right_hand",
+                                        "left_foot", "right_foot", "chest")
+    with pytest.raises(ValueError, match="unknown: 7"):
+        parse_devices("7,chest")
     with pytest.raises(ValueError, match="unknown: left_toe"):
         parse_devices("head,left_hand,right_hand,left_toe")
     with pytest.raises(ValueError, match="add right_hand"):
@@ -191,7 +196,8 @@ def test_lost_devices_are_carried_on_better_than_never_having_them() -> None:
         assert recon.lost is not None and recon.lost.any()
         p, _ = recon.points(recon.rots, recon.roots)
         err = position_error_mm(p, recon.truth_p)
-        for d, device in enumerate(SIX):
+        assert set(recon.driving) == set(SIX)
+        for d, device in enumerate(recon.driving):
             lost = recon.lost[:, d]
             if device in ("head", "left_hand", "right_hand") or not lost.any():
                 continue

@@ -32,19 +32,17 @@ DEFAULT_SET = "6"
 
 
 def parse_devices(spec: str) -> tuple[str, ...]:
-    """A tracker set: a preset ("3", "4", "6", "10") or a comma list of roles, in slot
-    order. ValueError (one line) for anything else or a set without head and hands."""
-    text = spec.strip()
-    if text in PRESETS:
-        names: list[str] = list(PRESETS[text])
-    else:
-        names = [n.strip() for n in text.split(",") if n.strip()]
-        unknown = [n for n in names if n not in SLOT]
-        if unknown or not names:
-            raise ValueError(
-                f"--devices {spec!r}: expected a preset ({', '.join(PRESETS)}) or a comma "
-                f"list of {', '.join(DEVICES)}" + (f"; unknown: {', '.join(unknown)}"
-                                                   if unknown else ""))
+    """A tracker set: a preset ("3", "4", "6", "10"), a comma list of roles, or both
+    ("6,chest"), in slot order. ValueError (one line) for anything else or a set without
+    head and hands."""
+    items = [n.strip() for n in spec.split(",") if n.strip()]
+    names: list[str] = [r for n in items for r in PRESETS.get(n, (n,))]
+    unknown = [n for n in names if n not in SLOT]
+    if unknown or not names:
+        raise ValueError(
+            f"--devices {spec!r}: expected a preset ({', '.join(PRESETS)}) or a comma "
+            f"list of {', '.join(DEVICES)}" + (f"; unknown: {', '.join(unknown)}"
+                                               if unknown else ""))
     lacking = [n for n in MINIMUM if n not in names]
     if lacking:
         raise ValueError(f"--devices {spec!r}: head and both hands are the minimum; "
