@@ -23,7 +23,7 @@ const hudBox = document.getElementById("hud");
 
 // what the page has done, for people (the HUD) and for tests (window.posecast)
 const stats = { phase: "loading", avatars: 0, drawn: 0, framesReceived: 0, framesPresented: 0,
-  badMessages: 0, reportsSent: 0, firstAvatarS: null, lastError: null };
+  badMessages: 0, reportsSent: 0, firstAvatarS: null, lastError: null, paused: false };
 window.posecast = stats;
 
 function say(text, kind = "info") {
@@ -66,6 +66,7 @@ class Spectator {
     this.presents = [];
     this.hudAt = -Infinity;
     this.errorUntil = -Infinity;
+    this.paused = false;
     this.clock = { synced: false, offset: 0, rtt: Infinity }; // the worker's, as it says
     const url = document.querySelector('meta[name="posecast-network"]').content;
     this.net = new Worker(url, { type: "module" });
@@ -149,7 +150,16 @@ class Spectator {
     });
   }
 
+  // Space freezes the view (frames still arrive; the newest is drawn on going on): a
+  // spectator can look at a pose, and a screenshot shows what the names say
+  togglePause() {
+    this.paused = !this.paused;
+    stats.paused = this.paused;
+    this.updateHud();
+  }
+
   frame() {
+    if (this.paused) return;
     const fresh = [];
     for (const [id, f] of this.latest) {
       if (f.drawn) continue;
@@ -200,7 +210,8 @@ class Spectator {
       .map(([, a]) => ({ name: a.fitted.info.displayName, devices: a.fitted.info.devices,
         lost: a.lost }));
     const text = [
-      `room ${room}   ${stats.drawn} avatar${stats.drawn === 1 ? "" : "s"}   ${fps.toFixed(0)} fps`,
+      `room ${room}   ${stats.drawn} avatar${stats.drawn === 1 ? "" : "s"}   ` +
+        (this.paused ? "paused (Space: go on)" : `${fps.toFixed(0)} fps`),
       clock.synced ? `clock synced to the server's within ${(500 * clock.rtt).toFixed(2)} ms`
         : "clock: syncing with the server",
       "latency ms             p50      p99",
@@ -229,6 +240,11 @@ async function main() {
   const spectator = new Spectator(scene, bind);
   stats.phase = "joining";
   window.addEventListener("pagehide", () => spectator.leave());
+  window.addEventListener("keydown", (e) => {
+    if (e.code !== "Space" || e.repeat) return;
+    e.preventDefault();
+    spectator.togglePause();
+  });
   const loop = () => {
     spectator.frame();
     requestAnimationFrame(loop);
