@@ -137,7 +137,7 @@ def _parser() -> argparse.ArgumentParser:
     ev.add_argument("--map", type=arg.existing_file, default=None, metavar="FILE",
                     help="BVH joint name -> role (.json or .toml) for rigs whose names and "
                          "shape are not recognised, e.g. {\"Bone_7\": \"forearm_l\"}")
-    ev.add_argument("--devices", type=arg.devices, default=PRESETS[DEFAULT_SET], metavar="SET",
+    ev.add_argument("--devices", type=arg.devices, default=DEFAULT_SET, metavar="SET",
                     help="the devices that drive the avatar: 3 (head and hands), 4 (+ hip), "
                          "6 (+ feet), 10 (+ elbows and knees) or a comma list of roles; the "
                          "others are scored as held out (default: 6)")
@@ -482,7 +482,7 @@ def _parser() -> argparse.ArgumentParser:
                     help="iteration limit per chain (default: the solver's own)")
     bs.add_argument("--seconds", type=arg.positive_float, default=2.0,
                     help="time spent per batch size")
-    bs.add_argument("--devices", type=arg.devices, default=PRESETS[DEFAULT_SET], metavar="SET",
+    bs.add_argument("--devices", type=arg.devices, default=DEFAULT_SET, metavar="SET",
                     help="the tracker set the avatars are driven by (as for eval); the "
                          "body model fills the rest")
     bs.add_argument("--json", action="store_true", help="print one JSON document")
