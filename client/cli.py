@@ -612,6 +612,10 @@ def _configure_logging(command: str, level_name: str | None) -> None:
     logging.getLogger("numba").setLevel(logging.WARNING)  # its debug output is the compiler's
 
 
+def _not_default_set(devices: tuple[str, ...]) -> bool:
+    return set(devices) != set(PRESETS[DEFAULT_SET])
+
+
 def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
     if args.command == "warm":
         print(f"kernels ready in {warm_kernels(notice):.1f} s")
@@ -630,7 +634,7 @@ def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
                                            ("--naive", args.naive),
                                            ("--smoothing", args.smoothing != 0.0),
                                            ("--cross-validate", args.cross_validate),
-                                           ("--devices", args.devices != PRESETS[DEFAULT_SET]))
+                                           ("--devices", _not_default_set(args.devices)))
                                            if on])
     if args.command == "eval" and args.cross_validate:
         from posecast.client.crossval_command import run_cross_validate
@@ -643,7 +647,7 @@ def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
                                       ("--map", args.map is not None),
                                       ("--dropouts", args.dropouts is not None),
                                       ("--naive", args.naive),
-                                      ("--devices", args.devices != PRESETS[DEFAULT_SET]))
+                                      ("--devices", _not_default_set(args.devices)))
                                       if on])
     if args.command == "eval":
         from posecast.client.eval_command import run_eval
