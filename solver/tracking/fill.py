@@ -131,6 +131,10 @@ def _bookkeeping(dev, present, has, state, d, dt):
         state[b + D_LOST] = 0.0
         state[b + D_SEEN] = 1.0
     elif has[d]:
+        if state[b + D_LOST] == 0.0 and d < MAIN:  # lost now: it was last where it was
+            # shown (blending in, maybe), which may not be where it was last measured
+            for i in range(7):
+                state[b + D_MEAS + i] = state[b + D_OUT + i]
         state[b + D_LOST] += max(dt, 1e-6)  # > 0 from the first frame it is missing
 
 
@@ -224,10 +228,12 @@ def fill_targets(dev, present, has, t, shape, state, targets, weights):
     # the pelvis
     mp, mq = model_pelvis(shape, state, hp, hq, dt)
     b = _base(HIP)
+    # a tracked device is held as its target shows it (blending in, maybe): lost again
+    # before the blend ends, it carries on from where it was shown, not from the device
     if present[HIP]:
         pp, pq = _measured(dev, state, HIP, (0.0, 0.0, 0.0), False)
         learn_pelvis(state, mp, read3(dev[HIP], 0), dt)
-        _hold(state, HIP, hp, head_frame, read3(dev[HIP], 0), read4(dev[HIP], 3))
+        _hold(state, HIP, hp, head_frame, pp, pq)
     elif lost[HIP] and state[b + D_SEEN] > 0.0:
         cp, cq, w = _carried(state, HIP, hp, head_frame)
         pp, pq = _blend(cp, cq, adapted(state, mp), mq, w)
@@ -241,31 +247,29 @@ def fill_targets(dev, present, has, t, shape, state, targets, weights):
         shoulder = add(hp, trotate(yaw_quat(body_yaw), read3(shape, S_SHOULDER + 3 * side)))
         if present[d]:
             p, q = _measured(dev, state, d, shoulder, True)
-            _hold(state, d, pp, pq, read3(dev[d], 0), read4(dev[d], 3))
+            _hold(state, d, pp, pq, p, q)
         else:
             p, q = _hanging_hand(shape, side, hp, body_yaw)
             if lost[d] and state[_base(d) + D_SEEN] > 0.0:
                 cp, cq, w = _carried(state, d, pp, pq)
                 p, q = _blend_about(shoulder, cp, cq, p, q, w)
         write_pose(targets[d], 0, p, q)
-    # the feet: the model follows the tracked ones, and carries on for the others
+    # the feet: the model follows the tracked ones (as shown), and carries on for the
+    # others
+    turn = tmul(pq, tconj(read4(shape, S_G0_PELVIS)))
     for side in range(2):
         d = FOOT_L + side
         if present[d]:
-            track_foot(shape, state, side, read3(dev[d], 0), read4(dev[d], 3))
+            hip = add(pp, trotate(turn, read3(shape, S_HIP + 3 * side)))
+            p, q = _measured(dev, state, d, hip, True)
+            track_foot(shape, state, side, p, q)
         elif lost[d] and state[_base(d) + D_LOST] <= dt + 1e-6:  # lost this frame
             v = read3(state, _base(d) + D_VEL)
             lose_foot(shape, state, side, t, math.sqrt(v[0] ** 2 + v[1] ** 2 + v[2] ** 2))
     step_feet(shape, state, pp, pq, t, dt, present[FOOT_L], present[FOOT_R])
     for side in range(2):
-        d = FOOT_L + side
-        if present[d]:
-            turn = tmul(pq, tconj(read4(shape, S_G0_PELVIS)))
-            hip = add(pp, trotate(turn, read3(shape, S_HIP + 3 * side)))
-            p, q = _measured(dev, state, d, hip, True)
-        else:
-            p, q = foot_target(shape, state, side, t)
-        write_pose(targets[d], 0, p, q)
+        p, q = foot_target(shape, state, side, t)  # a tracked foot's: as tracked above
+        write_pose(targets[FOOT_L + side], 0, p, q)
     for d in range(MAIN):
         weights[d] = 1.0
         for i in range(7):
