@@ -612,8 +612,13 @@ def _configure_logging(command: str, level_name: str | None) -> None:
     logging.getLogger("numba").setLevel(logging.WARNING)  # its debug output is the compiler's
 
 
-def _not_default_set(devices: tuple[str, ...]) -> bool:
-    return set(devices) != set(PRESETS[DEFAULT_SET])
+def _eval_flags_given(args: argparse.Namespace, *more: tuple[str, bool]) -> list[str]:
+    """The options of eval given that the cross-validations do not take."""
+    return [flag for flag, on in (
+        ("--delay-ms", args.delay_ms is not None), ("--predict", args.predict),
+        ("--map", args.map is not None), ("--dropouts", args.dropouts is not None),
+        ("--naive", args.naive),
+        ("--devices", set(args.devices) != set(PRESETS[DEFAULT_SET])), *more) if on]
 
 
 def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
@@ -625,30 +630,16 @@ def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
     if args.command == "eval" and args.cross_validate_body:
         from posecast.client.crossval_body_command import run_cross_validate_body
 
-        return run_cross_validate_body(args.files, args.solver, args.max_iterations, args.json,
-                                       given=[flag for flag, on in (
-                                           ("--delay-ms", args.delay_ms is not None),
-                                           ("--predict", args.predict),
-                                           ("--map", args.map is not None),
-                                           ("--dropouts", args.dropouts is not None),
-                                           ("--naive", args.naive),
-                                           ("--smoothing", args.smoothing != 0.0),
-                                           ("--cross-validate", args.cross_validate),
-                                           ("--devices", _not_default_set(args.devices)))
-                                           if on])
+        return run_cross_validate_body(
+            args.files, args.solver, args.max_iterations, args.json,
+            given=_eval_flags_given(args, ("--smoothing", args.smoothing != 0.0),
+                                    ("--cross-validate", args.cross_validate)))
     if args.command == "eval" and args.cross_validate:
         from posecast.client.crossval_command import run_cross_validate
 
         return run_cross_validate(args.files, args.solver, args.max_iterations,
                                   args.calibration, args.smoothing, args.json,
-                                  given=[flag for flag, on in (
-                                      ("--delay-ms", args.delay_ms is not None),
-                                      ("--predict", args.predict),
-                                      ("--map", args.map is not None),
-                                      ("--dropouts", args.dropouts is not None),
-                                      ("--naive", args.naive),
-                                      ("--devices", _not_default_set(args.devices)))
-                                      if on])
+                                  given=_eval_flags_given(args))
     if args.command == "eval":
         from posecast.client.eval_command import run_eval
 
