@@ -570,18 +570,25 @@ def place_root(parents, offsets, q, root, gq, gp, pelvis, target):
     fk(parents, offsets, q, root, gq, gp)
 
 
+@njit(cache=True, inline="always")
+def bone_target_row(device, i, mount_p, mount_q, j, out, k):
+    """Row k of ``out``: the bone pose that device row i gives through mount row j: bone
+    rotation = device rotation times the mount's inverse, bone position = device
+    position minus the mount offset turned into the world."""
+    dq = (device[i, 3], device[i, 4], device[i, 5], device[i, 6])
+    t = tmul(dq, tconj(row4(mount_q, j)))
+    v = trotate(t, row3(mount_p, j))
+    for d in range(3):
+        out[k, d] = device[i, d] - v[d]
+    out[k, 3] = t[0]
+    out[k, 4] = t[1]
+    out[k, 5] = t[2]
+    out[k, 6] = t[3]
+
+
 @njit(cache=True)
 def bone_targets(device, mount_p, mount_q, out):
-    """Bone targets from device poses: per row, bone rotation = device rotation times the
-    mount's inverse, bone position = device position minus the mount offset turned into
-    the world. device (N, 7) pos + quat, mount_p (N, 3), mount_q (N, 4), out (N, 7)."""
+    """Bone targets from device poses (``bone_target_row`` for each row): device (N, 7)
+    pos + quat, mount_p (N, 3), mount_q (N, 4), out (N, 7)."""
     for i in range(device.shape[0]):
-        dq = (device[i, 3], device[i, 4], device[i, 5], device[i, 6])
-        t = tmul(dq, tconj(row4(mount_q, i)))
-        v = trotate(t, row3(mount_p, i))
-        for d in range(3):
-            out[i, d] = device[i, d] - v[d]
-        out[i, 3] = t[0]
-        out[i, 4] = t[1]
-        out[i, 5] = t[2]
-        out[i, 6] = t[3]
+        bone_target_row(device, i, mount_p, mount_q, i, out, i)

@@ -13,7 +13,7 @@ from numba import njit
 from numpy.typing import NDArray
 
 from posecast.solver.calibration import Calibration, Mount
-from posecast.solver.kernels import row3, row4, tconj, tmul, trotate
+from posecast.solver.kernels import bone_target_row
 from posecast.solver.tracking.body_model import SHIPPED, BodyModel
 from posecast.solver.tracking.devices import DEVICES, ELBOW_L, KNEE_R, SLOT
 from posecast.solver.tracking.fill import fill_batch, new_state
@@ -37,19 +37,13 @@ def stage_row(row, slots, poses, t, dev, present, has, mount_p, mount_q, times):
             every = False
             continue
         present[row, s] = True
-        dq = (poses[i, 3], poses[i, 4], poses[i, 5], poses[i, 6])
         if ELBOW_L <= s <= KNEE_R:
             for k in range(3):
                 dev[row, s, k] = poses[i, k]
                 dev[row, s, 3 + k] = mount_p[row, s, k]
             dev[row, s, 6] = 0.0
-            continue
-        bq = tmul(dq, tconj(row4(mount_q[row], s)))
-        v = trotate(bq, row3(mount_p[row], s))
-        for k in range(3):
-            dev[row, s, k] = poses[i, k] - v[k]
-        for k in range(4):
-            dev[row, s, 3 + k] = bq[k]
+        else:
+            bone_target_row(poses, i, mount_p[row], mount_q[row], s, dev[row], s)
     times[row] = t
     return every
 
