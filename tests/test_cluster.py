@@ -397,7 +397,8 @@ def test_bench_fanout_measures_each_process_count(
         capsys: pytest.CaptureFixture[str]) -> None:
     """The bench's machinery at a toy size: both process counts reach the cap with every
     probe's latency measured and the players' frames reaching every spectator, a line
-    per step as it goes."""
+    per step as it goes. A step that fails once is tried again (the bench's own rule
+    against a loaded machine's hiccup), so a count may appear twice, failed then held."""
     if shutil.which("redis-server") is None:
         pytest.skip("no redis-server here (apt-get install redis-server)")
     assert main(["bench", "fanout", "--processes", "1,2", "--start", "6", "--max", "9",
@@ -406,21 +407,30 @@ def test_bench_fanout_measures_each_process_count(
     doc = json.loads(out.out)
     assert doc["budget_ms"] == 1000 and doc["max_lost"] == MAX_LOST and doc["repeat"] == 2
     assert [r["processes"] for r in doc["results"]] == [1, 2]
+    steps_seen = 0
     for r in doc["results"]:
         assert r["spectators"] == 9 and r["runs"] == [9, 9] and r["ratios"] == [1.0, 1.0]
         assert len(r["steps"]) == 2  # a list of steps per run
         for run in r["steps"]:
-            assert [s["spectators"] for s in run] == [6, 9]  # each held at once
+            held = [s for s in run if s["held"]]
+            assert [s["spectators"] for s in held] == [6, 9]
+            # a failed step is followed by the same count again, which then held
+            for before, after in zip(run, run[1:]):
+                if not before["held"]:
+                    assert after["spectators"] == before["spectators"] and after["held"]
+            steps_seen += len(run)
             for step in run:
                 assert len(step["capture_to_spectator_p99_ms"]) == r["processes"]
-                assert all(0 < p < 1000 for p in step["capture_to_spectator_p99_ms"])
+                assert all(0 < p for p in step["capture_to_spectator_p99_ms"])
+            for step in held:
+                assert all(p < 1000 for p in step["capture_to_spectator_p99_ms"])
                 # every spectator got the players' frames (within a batch at each end
                 # of the window: a burst may be open when the counters are read)
-                assert all(0 <= x <= MAX_LOST for x in step["lost"]) and step["held"]
+                assert all(0 <= x <= MAX_LOST for x in step["lost"])
         assert r["capture_to_spectator_p99_ms"] == r["steps"][0][-1][
             "capture_to_spectator_p99_ms"]
     assert doc["results"][1]["ratio"] == 1.0
-    assert out.err.count("spectators: p99") == 8
+    assert out.err.count("spectators: p99") == steps_seen >= 8
 
 
 def test_bench_fanout_budget_is_the_cli_default() -> None:
