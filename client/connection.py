@@ -59,7 +59,7 @@ from posecast.protocol import (
     encode,
 )
 from posecast.protocol.arrivals import ArrivalStamps, arrival_time
-from posecast.protocol.validation import protocol_error
+from posecast.protocol.validation import protocol_error, safe_text
 
 # unsent bytes beyond which a player's frames are dropped rather than queued: ~20 frames
 SEND_BUFFER_LIMIT = 16 * 1024
@@ -91,6 +91,7 @@ SYNC_BURST_INTERVAL = 0.02
 SYNC_INTERVAL = 1.0
 
 
+TOO_MANY_REQUESTS = 429  # a server's answer to too many joins from one address
 MAX_REDIRECTS = 3  # a room's owner is one hop away; more means processes disagree
 
 
@@ -129,6 +130,10 @@ def _connect_reason(exc: BaseException, url: str = "") -> str:
         return f"cannot resolve the host name ({exc.strerror or exc})"
     if isinstance(exc, InvalidURI):
         return "not a websocket URL (expected ws://HOST:PORT)"
+    if isinstance(exc, InvalidStatus) and exc.response.status_code == TOO_MANY_REQUESTS:
+        wait = exc.response.headers.get("Retry-After", "?")
+        return (f"the server refuses new connections from this address for now (too "
+                f"many, HTTP 429); it asks to wait {safe_text(wait, 16)} s")
     if isinstance(exc, InvalidStatus):
         return (f"not a posecast server: HTTP {exc.response.status_code} instead of a "
                 f"websocket upgrade")
@@ -151,8 +156,9 @@ def _worth_retrying(exc: BaseException, url: str) -> bool:
     failure, a bad URL or something that is not a posecast server."""
     if tls_failure(exc, urlsplit(url).scheme == "wss") is not None:
         return False
-    if isinstance(exc, InvalidStatus):
-        return exc.response.status_code >= 500
+    if isinstance(exc, InvalidStatus):  # 429: joins from this address paused a while
+        code = exc.response.status_code
+        return code >= 500 or code == TOO_MANY_REQUESTS
     if isinstance(exc, InvalidURI | InvalidHandshake):
         return False
     return isinstance(exc, OSError | TimeoutError)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import functools
+import http
 import itertools
 import logging
 import math
@@ -54,6 +55,7 @@ from posecast.protocol import (
 from posecast.protocol.arrivals import ArrivalStamps, arrival_time
 from posecast.protocol.codec import decode_tracker_poses
 from posecast.protocol.validation import safe_text
+from posecast.server.address_budgets import AddressBudgets, address_key
 from posecast.server.auth import JoinTokens, TokenError, is_loopback
 from posecast.server.avatars import AvatarSolver
 from posecast.server.busy import BusyPoll
@@ -61,7 +63,7 @@ from posecast.server.clock import now
 from posecast.server.cluster import Cluster
 from posecast.server.eviction import Watchdog, close_now
 from posecast.server.helper import spare_cores
-from posecast.server.http_routes import session_routes
+from posecast.server.http_routes import Reply, session_routes
 from posecast.server.limits import (
     Budget,
     ServerLimits,
@@ -117,12 +119,11 @@ class Session:
         self.solver_name = solver
         self.reconnect_grace = reconnect_grace
         self.rooms: dict[str, Room] = {}
-        self.limits = limits or ServerLimits()
+        self.limits = limits or ServerLimits()  # and the per-address budgets (setter)
         self.tokens = tokens
         self._open_from: dict[str, int] = {}  # remote address -> its open connections
         self._errors: dict[ServerConnection, Budget] = {}  # each connection's error budget
         self._pings: dict[ServerConnection, Budget] = {}  # and its ping budget
-        self._address_calibrations: dict[str, Budget] = {}  # per address with connections
         self._closing: set[asyncio.Task[None]] = set()
         self.metrics = Metrics()
         self.started = now()  # uptime, for /healthz and /metrics
@@ -133,6 +134,10 @@ class Session:
         # log lines about rejections: sampled per connection, capped for the server
         self.log_budget = LineBudget(self.limits.log_lines_per_interval,
                                      self.limits.log_interval_s)
+        # and the joined/left lines: a join-and-leave loop must not write two per
+        # connection; what is left out is counted in the next line written
+        self.join_log = LineBudget(self.limits.log_lines_per_interval,
+                                   self.limits.log_interval_s)
         # stalled spectators and idle players, looked at once a second (``watch``)
         self.watchdog = Watchdog(self.limits.backlog_evict_s, self.limits.idle_player_s)
         self._rejection_logs: dict[ServerConnection, RejectionLog] = {}
@@ -155,6 +160,22 @@ class Session:
             cluster.lost_room = self._hand_over
             cluster.rejoined = self._rejoined
 
+    @property
+    def limits(self) -> ServerLimits:
+        return self._limits
+
+    @limits.setter
+    def limits(self, limits: ServerLimits) -> None:
+        self._limits = limits
+        # per remote address (an IPv6 /64), kept after its connections close: a client
+        # that reconnects gets no fresh budget (server.address_budgets)
+        self._address_calibrations = AddressBudgets(
+            limits.address_calibrations_per_s, limits.address_calibration_burst,
+            limits.addresses_remembered)
+        self._address_joins = AddressBudgets(
+            limits.address_joins_per_s, limits.address_join_burst,
+            limits.addresses_remembered)
+
     async def start_cluster(self) -> None:
         """Join the other processes (``ClusterError`` if Redis cannot be used): ids from
         this process's block, unique across the service."""
@@ -173,6 +194,7 @@ class Session:
     def _drop_room(self, room: Room) -> None:
         """An empty room leaves this process: its key in Redis, or its channel, goes."""
         if self.rooms.get(room.name) is room:
+            room.flush_roster()  # its last removals, to the other processes' spectators
             del self.rooms[room.name]
             lock = self._claiming.get(room.name)
             if lock is not None and not lock.locked():  # one per room this process has
@@ -338,9 +360,38 @@ class Session:
         """Websocket connections open now (admitted within the caps)."""
         return sum(self._open_from.values())
 
+    def admit(self, connection: ServerConnection) -> Reply | None:
+        """A websocket upgrade, before the handshake: None lets it through; over its
+        address's join budget, a 429 reply (``HttpRoutes``), the cheapest refusal there
+        is: no websocket, no handler, no close handshake."""
+        t = now()
+        joins = self._address_joins.get(address_key(connection.remote_address), t)
+        if joins.take(t):
+            return None
+        self.metrics.limited["address_joins"] += 1
+        self.metrics.rejected[ErrorCode.RATE_LIMITED] += 1
+        wait = max(1, math.ceil(joins.refill_at - t))
+        return Reply(f"too many new connections from your address: limit "
+                     f"address_joins_per_s = {self.limits.address_joins_per_s:g} (burst "
+                     f"{self.limits.address_join_burst}); retry in {wait} s\n".encode(),
+                     "text/plain; charset=utf-8", http.HTTPStatus.TOO_MANY_REQUESTS,
+                     headers=(("Retry-After", str(wait)),))
+
     async def handle(self, ws: ServerConnection) -> None:
         """A connection, admitted within the caps on connections (``ServerLimits``)."""
-        address = ws.remote_address[0] if isinstance(ws.remote_address, tuple) else "?"
+        try:
+            await self._admitted(ws)
+        except Exception as exc:  # a bug met by a connection: one line, budgeted
+            # (a traceback per connection, at the connection rate, floods the log)
+            if self.log_budget.take(now()):
+                log.error("failed to handle a connection from %s: %s: %s", _peer(ws),
+                          type(exc).__name__, safe_text(str(exc), 160))
+            log.debug("the failure in full", exc_info=True)
+            with contextlib.suppress(Exception):
+                await close_now(ws, 1011, "internal error")
+
+    async def _admitted(self, ws: ServerConnection) -> None:
+        address = address_key(ws.remote_address)
         limits = self.limits
         if sum(self._open_from.values()) >= limits.connections:
             await self._refuse(ws, "connections", "the server is full")
@@ -361,7 +412,6 @@ class Session:
             self._open_from[address] -= 1
             if not self._open_from[address]:
                 del self._open_from[address]
-                self._address_calibrations.pop(address, None)
 
     async def _refuse(self, ws: ServerConnection, limit: str, words: str) -> None:
         """Refused at join: an Error naming the cap, then close 1008."""
@@ -399,7 +449,7 @@ class Session:
         # who is who in the log: role, name, room and address on join and on leave
         who = (f"{hello.role} {_safe(hello.display_name)} in room {_safe(hello.room)} "
                f"from {_peer(ws)}")
-        log.info("%s joined (connection %d)", who, conn_id)
+        self._log_join("%s joined (connection %d)", who, conn_id)
         t_joined = now()
         try:
             if hello.role == "player":
@@ -409,12 +459,26 @@ class Session:
             else:
                 await self._spectator(ws, conn_id, room, hello)
         finally:
-            log.info("%s left after %.1f s (%s)", who, now() - t_joined, _closed_words(ws))
+            self._log_join("%s left after %.1f s (%s)", who, now() - t_joined,
+                           _closed_words(ws))
             rejections = self._rejection_logs.pop(ws, None)
             if rejections is not None:
                 rejections.summary()
         if room.empty:
             self._drop_room(room)
+
+    def _log_join(self, text: str, *args: object) -> None:
+        """A joined/left line, within ``join_log``; the first after some were left out
+        says how many."""
+        budget = self.join_log
+        left_out = budget.suppressed
+        if not budget.take(now()):
+            return
+        if left_out:
+            budget.suppressed = 0
+            log.info("(%d joined/left lines not logged: over %d per %g s)", left_out,
+                     budget.lines, budget.interval)
+        log.info(text, *args)
 
     async def _redirect(self, ws: ServerConnection, url: str) -> None:
         """A player of a room another process owns: sent there, to stream without a hop
@@ -483,9 +547,7 @@ class Session:
         # refusals in one window that only a flood makes: the connection is closed
         flood_at = math.floor(limits.frame_flood_factor * frames.burst) + 1
         calibrations = Budget(limits.calibrations_per_s, limits.calibration_burst)
-        address = ws.remote_address[0] if isinstance(ws.remote_address, tuple) else "?"
-        from_address = self._address_calibrations.setdefault(address, Budget(
-            limits.address_calibrations_per_s, limits.address_calibration_burst))
+        address = address_key(ws.remote_address)
         if isinstance(ws, ArrivalStamps):
             ws.fast_path = functools.partial(self._tracker_frame_now, room, avatar, frames)
         said_bye = False
@@ -532,10 +594,11 @@ class Session:
                     elif isinstance(msg, Calibrate):
                         if not calibrations.take(t_received):
                             raise self._limited("calibrations", limits.calibrations_per_s)
-                        if not from_address.take(t_received):
+                        if not self._address_calibrations.take(address, t_received):
                             raise self._limited("address_calibrations",
                                                 limits.address_calibrations_per_s)
                         room.calibrate(avatar, msg.roles, msg.poses)
+                        self.metrics.calibrations += 1
                         self.watchdog.player_active(avatar.avatar_id, t_received)
                         if self.busy is not None:
                             self.busy.warm.calibrate(msg.roles, msg.poses)
@@ -867,7 +930,8 @@ async def run_server(host: str, port: int, session: Session | None = None,
     server: Server
     async with serve(session.handle, host, port, compression=None,
                      create_connection=TimestampedServerConnection,
-                     process_request=session_routes(session),  # GET /healthz, /metrics
+                     # GET /healthz, /metrics; upgrades within their address's budget
+                     process_request=session_routes(session),
                      max_size=session.limits.max_message_bytes,
                      max_queue=session.limits.max_queue, ssl=tls,
                      origins=allowed_origins(origins)) as server:
@@ -982,6 +1046,27 @@ class TimestampedServerConnection(ArrivalStamps, ServerConnection):
     no queue and no task switch, ~10 us of the server's time per frame."""
 
     clock = staticmethod(now)
+    _cut_off = False
+
+    def data_received(self, data: bytes) -> None:
+        super().data_received(data)
+        # the server failed the connection (1009: a frame over max_size; 1002, 1007): it
+        # sent its close frame and its EOF, and websockets would read and discard what
+        # the client still sends until its close timeout (a client sending 1 MiB frames
+        # pushed ~56 GB through loopback that way). Reading stops now; the socket goes
+        # once the close frame has had FLOOD_CLOSE_S to reach the client
+        protocol = self.protocol  # (a close the client began also ends in an EOF)
+        if protocol.eof_sent and protocol.close_rcvd is None and not self._cut_off:
+            self._cut_off = True
+            cut_off(self.transport, FLOOD_CLOSE_S)
+
+
+def cut_off(transport: asyncio.Transport, grace_s: float) -> None:
+    """Read nothing more from ``transport`` and abort it after ``grace_s`` (what it has
+    written meanwhile reaches the peer, unless the peer does not read)."""
+    with contextlib.suppress(AttributeError, RuntimeError):  # closing already
+        transport.pause_reading()
+    asyncio.get_running_loop().call_later(grace_s, transport.abort)
 
 
 def install_fast_loop() -> bool:

@@ -49,14 +49,18 @@ METRICS_MAX_AGE_S = 1.0
 
 class HttpRoutes:
     """``process_request`` for websockets' ``serve``: GET on a known path gets its
-    route's reply; an unknown path 404, another method 405."""
+    route's reply; an unknown path 404, another method 405. A websocket upgrade goes on
+    unless ``admit`` answers it with a refusal."""
 
-    def __init__(self, routes: Mapping[str, Route]) -> None:
+    def __init__(self, routes: Mapping[str, Route],
+                 admit: Callable[[ServerConnection], Reply | None] | None = None) -> None:
         self.routes = dict(routes)
+        self.admit = admit
 
     def __call__(self, connection: ServerConnection, request: Request) -> Response | None:
-        if _is_upgrade(request):
-            return None  # a websocket client: the handshake goes on
+        if _is_upgrade(request):  # a websocket client: the handshake goes on, if admitted
+            refusal = self.admit(connection) if self.admit is not None else None
+            return None if refusal is None else _response(refusal)
         route = self.routes.get(urlsplit(request.path).path)
         if route is None:
             pages = sorted(p for p in self.routes if not p.startswith("/static/"))
@@ -80,7 +84,7 @@ def session_routes(session: Session) -> HttpRoutes:
         "/healthz": lambda: health(session),
         "/metrics": Reused(lambda: Reply(metrics_text(session.registry), CONTENT_TYPE),
                            METRICS_MAX_AGE_S),
-    })
+    }, admit=session.admit)
 
 
 class Reused:

@@ -43,8 +43,15 @@ class ServerLimits:
     # (~40 ms of solve, a venue's players all starting together), then 4/s (~5 ms/s)
     address_calibrations_per_s: float = 4.0
     address_calibration_burst: int = 32
-    # rejected messages per second; once the bucket is empty the connection is closed
-    # (1008): a client that keeps erring is not worth answering
+    # new connections (websocket upgrades) per remote address: a venue's players and
+    # viewers all joining at once behind one NAT (connections_per_address), then 8/s.
+    # Over it, the upgrade is answered 429 before any websocket exists (the cheapest
+    # refusal): a reconnect loop cannot make the server work at its connection rate
+    address_joins_per_s: float = 8.0
+    address_join_burst: int = 128
+    # per-address budgets outlive their connections (server.address_budgets) in a
+    # table of at most this many addresses (IPv6 counted by /64), least recent first out
+    addresses_remembered: int = 65536
     # clock-sync pings: a client sends a burst of 5 at start, then 1/s
     pings_per_s: float = 10.0
     ping_burst: int = 20
@@ -52,6 +59,8 @@ class ServerLimits:
     # one every 0.5 s; each costs a few numpy calls
     reports_per_s: float = 4.0
     report_burst: int = 8
+    # rejected messages per second; once the bucket is empty the connection is closed
+    # (1008): a client that keeps erring is not worth answering
     errors_per_s: float = 10.0
     error_burst: int = 20
     # a room's solve and every roster grow with its players
@@ -67,6 +76,10 @@ class ServerLimits:
     # a viewer's 1 MiB limit (53 joints: ~2 KB per avatar)
     roster_avatars_per_message: int = 16
     roster_message_bytes: int = 64 * 1024
+    # roster changes of a room go out at most once per this interval, merged (the first
+    # after a quiet spell at once): no join/leave pattern makes a spectator's roster
+    # traffic follow an attacker's connection rate
+    roster_interval_s: float = 0.05
     # a spectator that takes no frame for this long while frames wait for it is closed
     # (1013): it stopped reading or its link is dead, and latest-wins can do no more
     backlog_evict_s: float = 5.0

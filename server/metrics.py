@@ -30,6 +30,8 @@ class Metrics:
     # and offered to this process's spectators like solved ones
     frames_relayed: int = 0
     batches: int = 0
+    calibrations: int = 0  # T-poses taken (a refused one counts in ``rejected``)
+    rosters: int = 0  # roster messages sent to a room's spectators (merged changes)
     # every solved avatar-frame offered to a spectator is exactly one of these two:
     # handed to its socket, or never sent (a newer one of the avatar replaced it in the
     # outbox, the avatar left, or the connection closed first)
@@ -69,6 +71,7 @@ class Metrics:
                 "frames_unsendable": self.frames_unsendable,
                 "frames_replayed": self.frames_replayed,
                 "frames_relayed": self.frames_relayed, "batches": self.batches,
+                "calibrations": self.calibrations, "rosters": self.rosters,
                 "frames_delivered": self.frames_delivered,
                 "frames_dropped": self.frames_dropped,
                 "viewer_reports": self.viewer_reports, "rejected": dict(self.rejected),

@@ -66,6 +66,10 @@ class SessionCollector(Collector):
             yield CounterMetricFamily(f"posecast_{name}", words, value=getattr(m, name))
         yield CounterMetricFamily("posecast_batches", "Batches solved (one solve, one "
                                   "message per spectator).", value=m.batches)
+        yield CounterMetricFamily("posecast_calibrations", "T-poses taken (calibrations "
+                                  "accepted).", value=m.calibrations)
+        yield CounterMetricFamily("posecast_rosters", "Roster messages sent to a room's "
+                                  "spectators (changes merged per room).", value=m.rosters)
         rejected = CounterMetricFamily("posecast_rejections", "Messages and joins "
                                        "refused with an error, by its code.",
                                        labels=["code"])

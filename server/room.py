@@ -17,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hmac
+import math
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -36,7 +37,7 @@ from posecast.protocol.arrivals import ArrivalStamps
 from posecast.protocol.codec import encode_avatar_batch
 from posecast.protocol.messages import TrackerPoses
 from posecast.protocol.roles import DEVICE_ROLES
-from posecast.protocol.validation import MAX_NAME_CHARS, sendable_rows
+from posecast.protocol.validation import MAX_AVATARS, MAX_NAME_CHARS, sendable_rows
 from posecast.server.avatars import AvatarSolver
 from posecast.server.busy import OpenBursts
 from posecast.server.cadence import Cadence
@@ -171,14 +172,23 @@ class Room:
     # rosters, and its spectators get the owner's batches as they come through Redis
     cluster: Cluster | None = None
     relayed: bool = False
+    # roster changes not yet sent, merged (``broadcast_roster``): avatars added or given a
+    # new skeleton, and avatars removed, in the order they came
+    _roster_infos: dict[int, AvatarInfo] = field(default_factory=dict)
+    _roster_removed: dict[int, None] = field(default_factory=dict)
+    _roster_timer: asyncio.TimerHandle | None = None
+    _roster_sent_at: float = -math.inf  # loop time of the last roster sent
 
     # ------------------------------------------------------------------ players
     def find_by_resume(self, resume: str | None) -> Avatar | None:
         """The avatar whose player reconnects with this secret (Welcome.resume)."""
         if resume is None:
             return None
+        # as bytes: compare_digest refuses a str with a character beyond ASCII (a
+        # TypeError that closed the connection with 1011 and logged a traceback)
+        wanted = resume.encode("utf-8", "surrogatepass")
         return next((a for a in self.avatars.values()
-                     if hmac.compare_digest(a.resume, resume)), None)
+                     if hmac.compare_digest(a.resume.encode(), wanted)), None)
 
     def unique_name(self, name: str) -> str:
         """``name``, or "name 2", "name 3", ... if an avatar of the room has it: viewers
@@ -307,13 +317,16 @@ class Room:
     def remove_avatar(self, avatar_id: int) -> None:
         if self.cluster is not None and not self.relayed:
             self.cluster.forget(self.name, avatar_id)
-        self.avatars.pop(avatar_id, None)
+        avatar = self.avatars.pop(avatar_id, None)
         self.solver.remove(avatar_id)
         if self._pending.pop(avatar_id, None) is not None:
             self.metrics.frames_discarded += 1
         for s in self.spectators.values():
             s.outbox.forget(avatar_id)
-        self.broadcast_roster(AvatarRoster(removed=(avatar_id,)))
+        # a player that never calibrated was never in a roster: its leaving costs the
+        # spectators nothing (a join-and-leave loop made ~1,300 rosters a second)
+        if avatar is None or avatar.info is not None:
+            self.broadcast_roster(AvatarRoster(removed=(avatar_id,)))
 
     # ------------------------------------------------------------------ solving
     def solve_pending(self) -> None:
@@ -375,6 +388,8 @@ class Room:
         other processes (``serve --redis``) it goes to Redis first: the writer's turn
         comes before this process's spectators, so that the far ones do not wait for
         this process's whole fan-out (which doubled their p99 in ``bench fanout``)."""
+        if self._roster_infos and any(a in self._roster_infos for a in shared.avatar_ids):
+            self.flush_roster()  # a spectator learns an avatar before its first frame
         if self.cluster is not None and not self.relayed:
             self.cluster.publish(self.name, BATCH, shared.encoded())
             if self.spectators:
@@ -410,25 +425,46 @@ class Room:
         ``max_bytes`` bytes each: a viewer merges them (each adds avatars), and however
         many avatars the room holds no message nears a viewer's size limit."""
         infos = [a.info for a in self.avatars.values() if a.info is not None]
-        if not infos:
-            return [encode(AvatarRoster())]
-        parts: list[bytes] = []
-        chunks = [infos[i:i + max_avatars] for i in range(0, len(infos), max_avatars)]
-        while chunks:
-            chunk = chunks.pop(0)
-            data = encode(AvatarRoster(avatars=tuple(chunk)))
-            if len(data) > max_bytes and len(chunk) > 1:  # large skeletons: halve it
-                half = len(chunk) // 2
-                chunks[:0] = [chunk[:half], chunk[half:]]
-            else:  # one avatar over the bound is still sent: within the protocol's own
-                parts.append(data)
-        return parts
+        return roster_parts(infos, [], max_avatars, max_bytes)
 
     def broadcast_roster(self, roster: AvatarRoster) -> None:
-        data = encode(roster)
-        if self.cluster is not None and not self.relayed:
-            self.cluster.publish(self.name, ROSTER, data)
-        self.send_roster(data)
+        """Roster changes to every spectator, merged per room: the first change after
+        a quiet spell goes out at once, the ones that follow within
+        ``limits.roster_interval_s`` together when it has passed (an avatar's newest
+        skeleton; one added and removed meanwhile, as removed)."""
+        for info in roster.avatars:
+            self._roster_infos[info.avatar_id] = info
+            self._roster_removed.pop(info.avatar_id, None)
+        for avatar_id in roster.removed:
+            self._roster_infos.pop(avatar_id, None)
+            self._roster_removed[avatar_id] = None
+        if self._roster_timer is not None:  # a send is coming: it takes these too
+            return
+        loop = asyncio.get_running_loop()
+        wait = self._roster_sent_at + self.limits.roster_interval_s - loop.time()
+        if wait <= 0:
+            self.flush_roster()
+        else:
+            self._roster_timer = loop.call_later(wait, self.flush_roster)
+
+    def flush_roster(self) -> None:
+        """The roster changes not sent yet, now."""
+        if self._roster_timer is not None:
+            self._roster_timer.cancel()
+            self._roster_timer = None
+        if not self._roster_infos and not self._roster_removed:
+            return
+        infos, removed = list(self._roster_infos.values()), list(self._roster_removed)
+        self._roster_infos.clear()
+        self._roster_removed.clear()
+        self._roster_sent_at = asyncio.get_running_loop().time()
+        limits = self.limits
+        for data in roster_parts(infos, removed, limits.roster_avatars_per_message,
+                                 limits.roster_message_bytes):
+            self.metrics.rosters += 1
+            if self.cluster is not None and not self.relayed:
+                self.cluster.publish(self.name, ROSTER, data)
+            self.send_roster(data)
 
     def send_roster(self, data: bytes) -> None:
         """An encoded roster to every spectator of this process."""
@@ -442,14 +478,37 @@ class Room:
 
     @property
     def settled(self) -> bool:
-        """No burst open and no spectator's outbox holding or sending a frame."""
-        return not self._scheduled and not self._pending and all(
+        """No burst open, no roster change waiting, and no spectator's outbox holding
+        or sending a frame."""
+        return not self._scheduled and not self._pending and self._roster_timer is None \
+            and all(
             s.outbox.idle for s in self.spectators.values())
 
     def discard_pending(self) -> None:
         """The server stopped with a burst open: its frames will never be solved."""
         self.metrics.frames_discarded += len(self._pending)
         self._pending.clear()
+
+
+def roster_parts(infos: list[AvatarInfo], removed: list[int], max_avatars: int,
+                 max_bytes: int) -> list[bytes]:
+    """Encoded rosters of at most ``max_avatars`` avatars and ``max_bytes`` bytes each
+    (the removals ride in the first): a viewer merges them, and however many avatars
+    change no message nears a viewer's size limit."""
+    chunks = [infos[i:i + max_avatars] for i in range(0, len(infos), max_avatars)] or [[]]
+    parts: list[bytes] = []
+    while chunks:
+        chunk = chunks.pop(0)
+        gone = tuple(removed[:MAX_AVATARS]) if not parts else ()
+        data = encode(AvatarRoster(avatars=tuple(chunk), removed=gone))
+        if len(data) > max_bytes and len(chunk) > 1:  # large skeletons: halve it
+            half = len(chunk) // 2
+            chunks[:0] = [chunk[:half], chunk[half:]]
+        else:  # one avatar over the bound is still sent: within the protocol's own
+            parts.append(data)
+    parts += [encode(AvatarRoster(removed=tuple(removed[i:i + MAX_AVATARS])))
+              for i in range(MAX_AVATARS, len(removed), MAX_AVATARS)]
+    return parts
 
 
 async def send_deliveries(send_bytes: Callable[[bytes], Awaitable[None]],

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import itertools
 import json
 import shutil
 import subprocess
@@ -415,13 +416,13 @@ def test_bench_fanout_measures_each_process_count(
             held = [s for s in run if s["held"]]
             assert [s["spectators"] for s in held] == [6, 9]
             # a failed step is followed by the same count again, which then held
-            for before, after in zip(run, run[1:]):
+            for before, after in itertools.pairwise(run):
                 if not before["held"]:
                     assert after["spectators"] == before["spectators"] and after["held"]
             steps_seen += len(run)
             for step in run:
                 assert len(step["capture_to_spectator_p99_ms"]) == r["processes"]
-                assert all(0 < p for p in step["capture_to_spectator_p99_ms"])
+                assert all(p > 0 for p in step["capture_to_spectator_p99_ms"])
             for step in held:
                 assert all(p < 1000 for p in step["capture_to_spectator_p99_ms"])
                 # every spectator got the players' frames (within a batch at each end

@@ -46,6 +46,7 @@ from posecast.protocol import (
 from posecast.protocol.codec import encode_tracker_frame
 from posecast.server.app import Session
 from posecast.server.clock import now
+from posecast.server.limits import ServerLimits
 
 T = TypeVar("T")
 TIMEOUT = 10.0  # generous: the machine is shared; a wait that passes it is a hang
@@ -202,7 +203,10 @@ class LiveServer:
     """The server, a bystander player and a bystander spectator in a thread's loop."""
 
     def __init__(self) -> None:
-        self.session = Session(reconnect_grace=0.0)
+        # every example is a new connection from 127.0.0.1: the join budget per address
+        # (tested in test_limits) would refuse most of them with a 429 before any message
+        self.session = Session(reconnect_grace=0.0, limits=ServerLimits(
+            address_joins_per_s=1e6, address_join_burst=10**6))
         self.url = ""
         self.bystander_frames = 0
         self.bystander_ends: list[str] = []  # how a bystander's connection ended, if it did
