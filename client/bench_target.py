@@ -109,6 +109,9 @@ class TargetServer:
     def open_fds(self) -> int:
         return open_fds(self.pid)
 
+    def cpu_s(self) -> float:
+        return cpu_s(self.pid)
+
 
 def rss_mb(pid: int) -> float:
     """Resident set size of a process in MB (VmRSS of /proc/PID/status); NaN if gone."""
@@ -127,3 +130,14 @@ def open_fds(pid: int) -> int:
         return len(os.listdir(f"/proc/{pid}/fd"))
     except OSError:
         return -1
+
+
+def cpu_s(pid: int) -> float:
+    """CPU time a process has used, user and system, in seconds (utime + stime of
+    /proc/PID/stat); NaN if gone."""
+    try:
+        text = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return float("nan")
+    fields = text[text.rindex(")") + 2:].split()  # after the command, which may hold spaces
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")

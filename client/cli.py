@@ -72,7 +72,8 @@ def _secret_file(text: str) -> Path:
 
 # client.bench_hostile.ATTACKS, without importing it (and websockets) for every command
 _HOSTILE_ATTACKS = ("calibrate-flood", "bad-messages", "big-frames", "poison-time",
-                    "poison-calibration")
+                    "poison-calibration", "hello-strings", "reconnect-calibrate",
+                    "join-leave")
 # client.bench_fanout.BUDGET_MS, likewise
 _FANOUT_BUDGET_MS = 25.0
 
@@ -548,10 +549,11 @@ def _parser() -> argparse.ArgumentParser:
                           "and ../shared/data/mocap/*.bvh)")
     bpr.add_argument("--json", action="store_true", help="print one JSON document")
     bh = bsub.add_parser("hostile", help="what one hostile client costs everyone else "
-                         "(issue 14's attacks, figures beside their targets)")
+                         "(issues 14 and 27's attacks, figures beside their targets)")
     bh.add_argument("--attack", required=True, choices=_HOSTILE_ATTACKS,
                     help="calibrate-flood, bad-messages and big-frames run in another room "
-                         "than the bystanders; poison-time and poison-calibration in theirs")
+                         "than the bystanders; poison-time, poison-calibration, "
+                         "hello-strings, reconnect-calibrate and join-leave in theirs")
     bh.add_argument("--seconds", type=arg.positive_float, default=10.0,
                     help="how long the attacker attacks")
     bh.add_argument("--json", action="store_true", help="print one JSON document")

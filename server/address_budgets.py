@@ -29,6 +29,8 @@ def address_key(remote_address: object) -> str:
     if not isinstance(remote_address, tuple) or not remote_address:
         return "?"
     host = str(remote_address[0])
+    if ":" not in host:  # IPv4: as it is (ip_address costs ~40 us, on every upgrade)
+        return host
     try:
         ip = ipaddress.ip_address(host)
     except ValueError:
@@ -69,6 +71,10 @@ class AddressBudgets:
         else:
             self._budgets.move_to_end(key)
         return budget
+
+    def peek(self, key: str) -> Budget | None:
+        """``key``'s budget if it has one; nothing changes."""
+        return self._budgets.get(key)
 
     def _forget_refilled(self, t: float) -> None:
         """Drop the least recently used budgets whose window has passed: they would be

@@ -32,6 +32,7 @@ class Metrics:
     batches: int = 0
     calibrations: int = 0  # T-poses taken (a refused one counts in ``rejected``)
     rosters: int = 0  # roster messages sent to a room's spectators (merged changes)
+    internal_errors: int = 0  # bugs met by a message or a connection (never expected)
     # every solved avatar-frame offered to a spectator is exactly one of these two:
     # handed to its socket, or never sent (a newer one of the avatar replaced it in the
     # outbox, the avatar left, or the connection closed first)
@@ -72,6 +73,7 @@ class Metrics:
                 "frames_replayed": self.frames_replayed,
                 "frames_relayed": self.frames_relayed, "batches": self.batches,
                 "calibrations": self.calibrations, "rosters": self.rosters,
+                "internal_errors": self.internal_errors,
                 "frames_delivered": self.frames_delivered,
                 "frames_dropped": self.frames_dropped,
                 "viewer_reports": self.viewer_reports, "rejected": dict(self.rejected),

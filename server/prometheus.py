@@ -68,6 +68,9 @@ class SessionCollector(Collector):
                                   "message per spectator).", value=m.batches)
         yield CounterMetricFamily("posecast_calibrations", "T-poses taken (calibrations "
                                   "accepted).", value=m.calibrations)
+        yield CounterMetricFamily("posecast_internal_errors", "Bugs met while handling "
+                                  "a message or a connection (an alert: never expected).",
+                                  value=m.internal_errors)
         yield CounterMetricFamily("posecast_rosters", "Roster messages sent to a room's "
                                   "spectators (changes merged per room).", value=m.rosters)
         rejected = CounterMetricFamily("posecast_rejections", "Messages and joins "
