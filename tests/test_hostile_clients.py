@@ -24,7 +24,7 @@ from conftest import serving
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from websockets.asyncio.client import ClientConnection, connect
-from websockets.exceptions import ConnectionClosed, InvalidStatus
+from websockets.exceptions import ConnectionClosed, InvalidMessage, InvalidStatus
 
 from posecast.client.builtin import builtin_motion_path
 from posecast.client.connection import SessionError, open_session
@@ -41,7 +41,7 @@ from posecast.protocol import (
     decode,
     encode,
 )
-from posecast.server.app import Session
+from posecast.server.app import DROP_AFTER_REFUSALS, Session
 from posecast.server.auth import JoinTokens
 from posecast.server.limits import ServerLimits
 
@@ -274,6 +274,29 @@ def test_joins_over_an_address_budget_get_a_429_that_the_client_explains() -> No
         writer.write(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n")
         assert (await reader.readline()).startswith(b"HTTP/1.1 200")
         writer.close()
+
+    run(session, test)
+
+
+def test_an_address_that_keeps_connecting_is_dropped_as_it_is_accepted() -> None:
+    """After DROP_AFTER_REFUSALS 429s in its window, the address's connections are
+    dropped before websockets reads them; once the window has passed it joins again."""
+    session = Session(reconnect_grace=0.0, limits=ServerLimits(
+        address_join_burst=2, address_joins_per_s=1.0))  # a window of 2 s
+
+    async def test(url: str) -> None:
+        for _ in range(2):
+            async with player(url, "d"):
+                pass
+        for _ in range(DROP_AFTER_REFUSALS):
+            with pytest.raises(InvalidStatus):
+                await connect(url, compression=None)
+        with pytest.raises((InvalidMessage, OSError)):  # no reply at all
+            await connect(url, compression=None)
+        assert session.metrics.limited["address_joins"] == DROP_AFTER_REFUSALS + 1
+        await asyncio.sleep(2.5)  # the window has passed: a full budget again
+        async with player(url, "d"):
+            pass
 
     run(session, test)
 
