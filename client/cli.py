@@ -78,6 +78,17 @@ _HOSTILE_ATTACKS = ("calibrate-flood", "bad-messages", "big-frames", "poison-tim
 _FANOUT_BUDGET_MS = 25.0
 
 
+def _addresses(text: str) -> list[str]:
+    """``serve --trusted-proxies``: comma-separated IP addresses."""
+    from posecast.server.address_budgets import normalized_ip
+
+    values = [v.strip() for v in text.split(",") if v.strip()]
+    try:
+        return [normalized_ip(v) for v in values] if values else [normalized_ip(text)]
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(f"not IP addresses: {err}") from None
+
+
 def _origins(text: str) -> list[str]:
     """``serve --origins``: comma-separated scheme://host[:port] values."""
     from posecast.server.tls import check_origin
@@ -200,6 +211,13 @@ def _parser() -> argparse.ArgumentParser:
                     help="browser pages allowed to connect (their Origin header); a "
                          "client that sends no Origin, as play and view, is always let "
                          "in (default: every origin)")
+    sv.add_argument("--trusted-proxies", type=_addresses, default=None,
+                    metavar="ADDRESS,...",
+                    help="reverse proxies in front (e.g. 127.0.0.1 for nginx on this "
+                         "machine): a connection from one counts as the client its "
+                         "X-Forwarded-For names, for every per-address limit and in the "
+                         "log (default: none; behind a proxy without it, every client "
+                         "shares the proxy's limits)")
     sv.add_argument("--redis", type=_redis_url, default=None, metavar="redis://HOST:PORT",
                     help="one of many server processes (on one machine or many) sharing "
                          "rooms through this Redis: a room is solved by one of them, its "
@@ -927,7 +945,8 @@ def _serve(args: argparse.Namespace) -> int:
         cluster = Cluster(args.redis, args.public_url or "")
     session = Session(tokens=tokens, solver=args.solver, busy=args.busy_poll,
                       helper=None if args.helper else False,
-                      limits=limits, cluster=cluster)
+                      limits=limits, cluster=cluster,
+                      trusted_proxies=args.trusted_proxies or ())
     from posecast.server.cluster import ClusterError
     try:
         asyncio.run(run_server(args.host, args.port, session, handle_signals=True,

@@ -42,6 +42,23 @@ def address_key(remote_address: object) -> str:
     return host
 
 
+def forwarded_client(header_values: list[str]) -> str | None:
+    """The client's address as a trusted reverse proxy reports it: the last entry of
+    X-Forwarded-For, the one the proxy added itself (those before it came from the
+    client and prove nothing). None when it is missing or not an IP address."""
+    entries = ",".join(header_values).split(",")
+    last = entries[-1].strip()
+    try:
+        return str(ipaddress.ip_address(last))
+    except ValueError:
+        return None
+
+
+def normalized_ip(text: str) -> str:
+    """``text`` as the canonical form of its IP address (ValueError if it is none)."""
+    return str(ipaddress.ip_address(text.strip()))
+
+
 class AddressBudgets:
     """One ``Budget(per_s, burst)`` per address key, kept across connections."""
 

@@ -29,6 +29,7 @@ import numpy as np
 from websockets.asyncio.server import Server, ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 from websockets.frames import CloseCode
+from websockets.http11 import Request
 from websockets.protocol import State
 
 from posecast.protocol import (
@@ -55,7 +56,12 @@ from posecast.protocol import (
 from posecast.protocol.arrivals import ArrivalStamps, arrival_time
 from posecast.protocol.codec import decode_tracker_poses
 from posecast.protocol.validation import safe_text
-from posecast.server.address_budgets import AddressBudgets, address_key
+from posecast.server.address_budgets import (
+    AddressBudgets,
+    address_key,
+    forwarded_client,
+    normalized_ip,
+)
 from posecast.server.auth import JoinTokens, TokenError, is_loopback
 from posecast.server.avatars import AvatarSolver
 from posecast.server.busy import BusyPoll
@@ -109,10 +115,14 @@ class Session:
     def __init__(self, rig: Rig | None = None, solver: str = "analytic",
                  reconnect_grace: float = RECONNECT_GRACE, busy: bool = False,
                  helper: bool | None = None, limits: ServerLimits | None = None,
-                 tokens: JoinTokens | None = None, cluster: Cluster | None = None) -> None:
+                 tokens: JoinTokens | None = None, cluster: Cluster | None = None,
+                 trusted_proxies: Sequence[str] = ()) -> None:
         """``limits``: every cap and rate of the server (``server.limits``).
         ``cluster``: one of many processes sharing rooms through Redis (``server.cluster``;
         ``run_server`` starts it).
+        ``trusted_proxies``: the addresses of reverse proxies in front; a connection
+        from one counts as the client its X-Forwarded-For names, for every per-address
+        limit and in the log.
         ``tokens``: admit only Hellos with a join token signed with its secret
         (``server.auth``); None: anyone joins any room.
         ``busy``: poll without sleeping and keep the frame path warm between bursts
@@ -125,6 +135,7 @@ class Session:
         self.rooms: dict[str, Room] = {}
         self.limits = limits or ServerLimits()  # and the per-address budgets (setter)
         self.tokens = tokens
+        self.trusted_proxies = frozenset(normalized_ip(a) for a in trusted_proxies)
         self._open_from: dict[str, int] = {}  # remote address -> its open connections
         self._errors: dict[ServerConnection, Budget] = {}  # each connection's error budget
         self._pings: dict[ServerConnection, Budget] = {}  # and its ping budget
@@ -364,12 +375,18 @@ class Session:
         """Websocket connections open now (admitted within the caps)."""
         return sum(self._open_from.values())
 
-    def admit(self, connection: ServerConnection) -> Reply | None:
+    def admit(self, connection: ServerConnection, request: Request) -> Reply | None:
         """A websocket upgrade, before the handshake: None lets it through; over its
         address's join budget, a 429 reply (``HttpRoutes``), the cheapest refusal there
-        is: no websocket, no handler, no close handshake."""
+        is: no websocket, no handler, no close handshake. Through a trusted proxy, the
+        client is the one its X-Forwarded-For names (kept on the connection)."""
+        peer = connection.remote_address
+        if isinstance(peer, tuple) and peer and str(peer[0]) in self.trusted_proxies:
+            client = forwarded_client(request.headers.get_all("X-Forwarded-For"))
+            if client is not None:
+                connection.forwarded_for = client  # type: ignore[attr-defined]
         t = now()
-        joins = self._address_joins.get(address_key(connection.remote_address), t)
+        joins = self._address_joins.get(address_key(client_address(connection)), t)
         if joins.take(t):
             return None
         self.metrics.limited["address_joins"] += 1
@@ -385,6 +402,8 @@ class Session:
         """A TCP connection as it is accepted, before websockets reads a byte: False
         (drop it, no reply) when its address keeps connecting with its join budget spent
         (``DROP_AFTER_REFUSALS``)."""
+        if isinstance(peername, tuple) and peername and str(peername[0]) in self.trusted_proxies:
+            return True  # its clients are told apart by their X-Forwarded-For, later
         joins = self._address_joins.peek(address_key(peername))
         if joins is None or joins.refused < DROP_AFTER_REFUSALS or joins.would_take(now()):
             return True
@@ -407,7 +426,7 @@ class Session:
                 await close_now(ws, 1011, "internal error")
 
     async def _admitted(self, ws: ServerConnection) -> None:
-        address = address_key(ws.remote_address)
+        address = address_key(client_address(ws))
         limits = self.limits
         if sum(self._open_from.values()) >= limits.connections:
             await self._refuse(ws, "connections", "the server is full")
@@ -563,7 +582,7 @@ class Session:
         # refusals in one window that only a flood makes: the connection is closed
         flood_at = math.floor(limits.frame_flood_factor * frames.burst) + 1
         calibrations = Budget(limits.calibrations_per_s, limits.calibration_burst)
-        address = address_key(ws.remote_address)
+        address = address_key(client_address(ws))
         if isinstance(ws, ArrivalStamps):
             ws.fast_path = functools.partial(self._tracker_frame_now, room, avatar, frames)
         said_bye = False
@@ -1033,13 +1052,23 @@ def _closed_by_client(ws: ServerConnection) -> bool:
             and protocol.close_rcvd.code == CloseCode.NORMAL_CLOSURE)
 
 
+def client_address(ws: ServerConnection) -> object:
+    """Who the per-address limits count: the peer, or through a trusted proxy the client
+    its X-Forwarded-For names (``Session.admit``), as a (host, port) tuple."""
+    forwarded = getattr(ws, "forwarded_for", None)
+    return (forwarded, 0) if forwarded is not None else ws.remote_address
+
+
 def _peer(ws: ServerConnection) -> str:
-    """The client's address as host:port ([host]:port for IPv6), for log lines."""
+    """The client's address as host:port ([host]:port for IPv6), for log lines; through
+    a trusted proxy, "client via proxy:port"."""
     address = ws.remote_address
     if not isinstance(address, tuple) or len(address) < 2:
         return "?"
     host, port = address[0], address[1]
-    return f"[{host}]:{port}" if ":" in str(host) else f"{host}:{port}"
+    shown = f"[{host}]:{port}" if ":" in str(host) else f"{host}:{port}"
+    forwarded = getattr(ws, "forwarded_for", None)
+    return shown if forwarded is None else f"{forwarded} via {shown}"
 
 
 def _safe(text: str, limit: int = 40) -> str:

@@ -53,13 +53,14 @@ class HttpRoutes:
     unless ``admit`` answers it with a refusal."""
 
     def __init__(self, routes: Mapping[str, Route],
-                 admit: Callable[[ServerConnection], Reply | None] | None = None) -> None:
+                 admit: Callable[[ServerConnection, Request], Reply | None] | None = None
+                 ) -> None:
         self.routes = dict(routes)
         self.admit = admit
 
     def __call__(self, connection: ServerConnection, request: Request) -> Response | None:
         if _is_upgrade(request):  # a websocket client: the handshake goes on, if admitted
-            refusal = self.admit(connection) if self.admit is not None else None
+            refusal = self.admit(connection, request) if self.admit is not None else None
             return None if refusal is None else _response(refusal)
         route = self.routes.get(urlsplit(request.path).path)
         if route is None:

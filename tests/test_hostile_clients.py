@@ -301,6 +301,41 @@ def test_an_address_that_keeps_connecting_is_dropped_as_it_is_accepted() -> None
     run(session, test)
 
 
+@pytest.mark.parametrize("trusted", [True, False], ids=["trusted-proxy", "no-proxy"])
+def test_behind_a_trusted_proxy_each_forwarded_client_has_its_own_budgets(
+        trusted: bool, caplog: pytest.LogCaptureFixture) -> None:
+    """nginx in front (docs/deploy.md) appends the client's address to X-Forwarded-For:
+    with the proxy trusted, each client has its own join budget (the entries a client
+    wrote itself before it prove nothing); without, the header is ignored."""
+    caplog.set_level(logging.INFO, logger="posecast.server")
+    session = Session(reconnect_grace=0.0, limits=ServerLimits(
+        address_join_burst=2, address_joins_per_s=0.01),
+        trusted_proxies=["127.0.0.1"] if trusted else [])
+
+    async def join(url: str, forwarded: str) -> bool:
+        try:
+            async with connect(url, compression=None,
+                               additional_headers={"X-Forwarded-For": forwarded}) as ws:
+                await ws.send(encode(Hello(protocol_version=PROTOCOL_VERSION,
+                                           role="spectator", room="p", display_name="v")))
+                assert isinstance(decode(await ws.recv()), Welcome)
+                return True
+        except InvalidStatus as refused:
+            assert refused.response.status_code == 429
+            return False
+
+    async def test(url: str) -> None:
+        a, b = "203.0.113.5", "203.0.113.6"
+        joined = [await join(url, a), await join(url, f"{b}, {a}"),  # spoofed: a's
+                  await join(url, a), await join(url, b), await join(url, b)]
+        assert joined == ([True, True, False, True, True] if trusted
+                          else [True, True, False, False, False])
+
+    run(session, test)
+    shown = "203.0.113.5 via 127.0.0.1:" if trusted else "from 127.0.0.1:"
+    assert any(shown in r.getMessage() for r in caplog.records)
+
+
 # ------------------------------------------------------------------ 3: rosters
 async def _rosters(ws: ClientConnection, seconds: float) -> list[AvatarRoster]:
     """The rosters that reach a spectator within ``seconds``."""
