@@ -107,6 +107,10 @@ FLOOD_CLOSE_S = 1.0  # a flooding client's close handshake gets this long, then 
 # code, a drop ~0.1 ms, and a client that honours Retry-After never gets this far
 DROP_AFTER_REFUSALS = 16
 DRAIN_POLL_S = 0.001
+# a close the server began waits this long for the client's close frame, then drops the
+# socket (websockets' default, 10 s, let a client that never answers hold its socket and
+# keep being read that long); an honest client answers within a round trip
+CLOSE_TIMEOUT_S = 2.0
 
 
 class Session:
@@ -970,6 +974,7 @@ async def run_server(host: str, port: int, session: Session | None = None,
                      process_request=session_routes(session),
                      max_size=session.limits.max_message_bytes,
                      max_queue=session.limits.max_queue, ssl=tls,
+                     close_timeout=CLOSE_TIMEOUT_S,
                      origins=allowed_origins(origins)) as server:
         bound = next(iter(server.sockets)).getsockname()[1]
         if session.cluster is not None and not session.cluster.public_url:

@@ -408,34 +408,53 @@ def test_the_rosters_of_many_changes_at_once_are_merged() -> None:
     run(session, test)
 
 
-# ------------------------------------------------------------------ 4: oversized frames
-def test_a_connection_refused_for_its_size_is_read_no_more() -> None:
-    """A client that goes on writing 1 MiB frames after its 1009: the server stops
-    reading at once (the client's writes soon block on full buffers; before, the
-    server read and discarded ~56 GB) and drops the socket after a short grace."""
+# ------------------------------------------------------------------ 4: closes
+# a masked binary frame (clients mask theirs) of 1 MiB, over max_message_bytes: 1009
+BIG_FRAME = b"\x82\xff" + (1 << 20).to_bytes(8, "big") + bytes(4) + bytes(1 << 20)
+# and of 4,000 bytes, within it
+SMALL_FRAME = b"\x82\xfe" + (4000).to_bytes(2, "big") + bytes(4) + bytes(4000)
+DROPPED_WITHIN_S = 8.0  # websockets' own close timeout, 10 s, would pass it
+
+
+@pytest.mark.parametrize("first, then", [(None, BIG_FRAME), (b"\xc1 not a hello",
+                                                             SMALL_FRAME)],
+                         ids=["1009-then-big-frames", "refused-hello-then-frames"])
+def test_a_connection_the_server_closes_is_read_no_more(first: bytes | None,
+                                                        then: bytes) -> None:
+    """A client that goes on writing after the server closed it (a 1 MiB frame: 1009; a
+    refused Hello: 1008) and never answers the close: the server reads no more than its
+    buffers hold (the client's writes soon block; before, a 1009'd client pushed
+    3.3 GB in 10 s) and drops the socket within seconds."""
     session = Session(reconnect_grace=0.0)
 
     async def test(url: str) -> None:
-        async with player(url, "big") as ws:
-            ws.transport.pause_reading()  # our side stops reading too: a raw writer
-            raw = socket.socket(fileno=os.dup(ws.transport.get_extra_info("socket").fileno()))
-            raw.setblocking(False)
-            # a masked binary frame of 1 MiB (clients mask their frames)
-            frame = b"\x82\xff" + (1 << 20).to_bytes(8, "big") + bytes(4) + bytes(1 << 20)
-            pushed, ended = 0, None
-            loop = asyncio.get_running_loop()
-            t_end = loop.time() + TIMEOUT
-            while loop.time() < t_end:
-                try:
-                    pushed += raw.send(frame)
-                except BlockingIOError:
-                    await asyncio.sleep(0.01)
-                except OSError as err:  # the server dropped the socket
-                    ended = err
-                    break
-            raw.close()
-            assert ended is not None, f"still open after {TIMEOUT:g} s, {pushed >> 20} MiB in"
-            # what the kernel's buffers hold on both sides, not what a reader takes
-            assert pushed < 64 << 20, f"{pushed >> 20} MiB were read after the 1009"
+        if first is None:
+            ws = await connect(url, compression=None)
+            await ws.send(encode(Hello(protocol_version=PROTOCOL_VERSION, role="player",
+                                       room="big", display_name="big")))
+            assert isinstance(decode(await ws.recv()), Welcome)
+        else:
+            ws = await connect(url, compression=None)
+            await ws.send(first)
+        ws.transport.pause_reading()  # our side reads nothing either: a raw writer
+        raw = socket.socket(fileno=os.dup(ws.transport.get_extra_info("socket").fileno()))
+        raw.setblocking(False)
+        pushed, ended = 0, None
+        loop = asyncio.get_running_loop()
+        t0 = loop.time()
+        while loop.time() < t0 + DROPPED_WITHIN_S:
+            try:
+                pushed += raw.send(then)
+            except BlockingIOError:
+                await asyncio.sleep(0.01)
+            except OSError as err:  # the server dropped the socket
+                ended = err
+                break
+        raw.close()
+        ws.transport.abort()
+        assert ended is not None, f"still open after {DROPPED_WITHIN_S:g} s, " \
+                                  f"{pushed >> 20} MiB in"
+        # what the kernel's buffers hold on both sides, not what a reader takes
+        assert pushed < 64 << 20, f"{pushed >> 20} MiB were read after the close"
 
     run(session, test)
