@@ -16,7 +16,7 @@ Worst-case angle error (analytic; ``MAX_ANGLE_ERROR_RAD``):
   The rotation angle between q and q' is 4 asin(|q' - q| / 2) ~ 2 |q' - q|, hence
   angle <= 4 sqrt(3) e = 1.1966e-3 rad = 0.06856 degrees  (required: <= 0.1 degree).
 The bound is reached near q = (1/2, 1/2, 1/2, 1/2) with every d_i near +e;
-tests/test_protocol_quantize.py checks it with hypothesis and at that corner.
+tests/protocol/test_protocol_quantize.py checks it with hypothesis and at that corner.
 """
 
 from __future__ import annotations

@@ -22,25 +22,44 @@ from pydantic import AfterValidator, Field, Strict, ValidationError, ValidationI
 
 from posecast.protocol.errors import ErrorCode, ProtocolError
 from posecast.protocol.quantize import BYTES_PER_ROTATION
+from posecast.protocol.sizes import (
+    MAX_AVATARS as MAX_AVATARS,
+)
+from posecast.protocol.sizes import (
+    MAX_CLIENT_MESSAGE_BYTES as MAX_CLIENT_MESSAGE_BYTES,
+)
+from posecast.protocol.sizes import (
+    MAX_INT as MAX_INT,
+)
+from posecast.protocol.sizes import (
+    MAX_JOINTS as MAX_JOINTS,
+)
+from posecast.protocol.sizes import (  # re-exported: the protocol's limits live there
+    MAX_MESSAGE_BYTES as MAX_MESSAGE_BYTES,
+)
+from posecast.protocol.sizes import (
+    MAX_NAME_CHARS as MAX_NAME_CHARS,
+)
+from posecast.protocol.sizes import (
+    MAX_POSITION_M as MAX_POSITION_M,
+)
+from posecast.protocol.sizes import (
+    MAX_RATE_HZ as MAX_RATE_HZ,
+)
+from posecast.protocol.sizes import (
+    MAX_TEXT_CHARS as MAX_TEXT_CHARS,
+)
+from posecast.protocol.sizes import (
+    MAX_TOKEN_CHARS as MAX_TOKEN_CHARS,
+)
+from posecast.protocol.sizes import (
+    QUAT_NORM_TOLERANCE as QUAT_NORM_TOLERANCE,
+)
+from posecast.protocol.sizes import (
+    ROOM_NAME_RULE as ROOM_NAME_RULE,
+)
 
 A = TypeVar("A", bound=NDArray[Any])
-
-# --------------------------------------------------------------------------- limits
-# Any message. The largest legitimate one is a full roster: ~2.5 KB per 60-joint avatar,
-# so 1 MiB holds a room of a few hundred avatars.
-MAX_MESSAGE_BYTES = 1 << 20
-# What a server accepts from a client (hello, tracker frame, calibrate, ping, leave):
-# a 10-device tracker frame is ~700 bytes, a hello with the longest token ~1200 bytes.
-MAX_CLIENT_MESSAGE_BYTES = 4096
-MAX_JOINTS = 256  # the MakeHuman rig has 53, large BVH skeletons ~100
-MAX_AVATARS = 1024  # per roster or batch message
-MAX_NAME_CHARS = 64  # room, display and joint names
-MAX_TOKEN_CHARS = 1024  # a signed join token (JWT, server.auth) is ~250-800 characters
-MAX_TEXT_CHARS = 1024  # error messages, leave reasons
-MAX_POSITION_M = 1000.0  # tracked spaces are metres across; 1e300 would overflow the solver
-MAX_RATE_HZ = 1000.0
-QUAT_NORM_TOLERANCE = 1e-3  # |norm - 1| accepted, then normalised
-MAX_INT = 2**63 - 1  # ids and sequence numbers fit an int64
 
 # --------------------------------------------------------------------------- scalar types
 # Strict: msgpack gives real ints, floats and strings; never coerce "12" or True.
@@ -57,10 +76,6 @@ def _printable(value: str) -> str:
 
 Name = Annotated[str, Strict(), Field(min_length=1, max_length=MAX_NAME_CHARS),
                  AfterValidator(_printable)]
-# room names end up in URLs, command lines and logs: keep them plain, and say the rule in
-# words (a regex in an error message helps nobody)
-ROOM_NAME_RULE = ("room names are 1-64 letters, digits, '-', '_' or '.', starting with a "
-                  "letter or digit")
 _ROOM_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 
 

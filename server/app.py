@@ -18,25 +18,17 @@ import itertools
 import logging
 import math
 import secrets
-import signal
-import socket
-import ssl
-from collections.abc import Callable, Coroutine, Sequence
-from typing import Any, cast
+from collections.abc import Coroutine, Sequence
+from typing import Any
 
 import numba
-import numpy as np
-from websockets.asyncio.server import Server, ServerConnection, serve
+from websockets.asyncio.server import ServerConnection
 from websockets.exceptions import ConnectionClosed
-from websockets.frames import CloseCode
 from websockets.http11 import Request
 from websockets.protocol import State
 
 from posecast.protocol import (
-    MAX_CLIENT_MESSAGE_BYTES,
     PROTOCOL_VERSION,
-    AvatarBatch,
-    AvatarRoster,
     Calibrate,
     Error,
     ErrorCode,
@@ -47,9 +39,7 @@ from posecast.protocol import (
     ProtocolError,
     Redirect,
     TrackerFrame,
-    ViewerReport,
     Welcome,
-    decode,
     decode_client,
     encode,
 )
@@ -62,14 +52,15 @@ from posecast.server.address_budgets import (
     forwarded_client,
     normalized_ip,
 )
-from posecast.server.auth import JoinTokens, TokenError, is_loopback
+from posecast.server.auth import JoinTokens, TokenError
 from posecast.server.avatars import AvatarSolver
 from posecast.server.busy import BusyPoll
 from posecast.server.clock import now
 from posecast.server.cluster import Cluster
+from posecast.server.cluster_rooms import ClusterRooms
 from posecast.server.eviction import Watchdog, close_now
 from posecast.server.helper import spare_cores
-from posecast.server.http_routes import Reply, session_routes
+from posecast.server.http_routes import Reply
 from posecast.server.limits import (
     Budget,
     ServerLimits,
@@ -77,20 +68,21 @@ from posecast.server.limits import (
     player_frames_per_s,
 )
 from posecast.server.metrics import Metrics
-from posecast.server.outbox import Outbox
+from posecast.server.peers import (
+    cap_send_buffers,
+    client_address,
+    closed_by_client,
+    closed_words,
+    peer,
+    safe_name,
+)
 from posecast.server.prometheus import session_registry
 from posecast.server.rejection_log import LineBudget, RejectionLog
-from posecast.server.relay import BATCH, ROSTER, open_envelope, relayed_batch, relayed_roster
-from posecast.server.replay import ReplayedAvatars
 from posecast.server.room import (
     Avatar,
-    Delivery,
-    RelayedBatch,
     Room,
-    Spectator,
-    send_deliveries,
 )
-from posecast.server.tls import allowed_origins, tcp_under_tls
+from posecast.server.spectating import SpectatingConnections
 from posecast.solver.readers.gltf import load_makehuman
 from posecast.solver.rig import Rig, build_rig
 
@@ -113,7 +105,7 @@ DRAIN_POLL_S = 0.001
 CLOSE_TIMEOUT_S = 2.0
 
 
-class Session:
+class Session(ClusterRooms, SpectatingConnections):
     """All rooms of one server process."""
 
     def __init__(self, rig: Rig | None = None, solver: str = "analytic",
@@ -229,151 +221,6 @@ class Session:
         self._closing.add(task)  # held until done: the loop keeps only weak references
         task.add_done_callback(self._closing.discard)
 
-    # ------------------------------------------------------------------ the cluster
-    async def _own(self, name: str) -> str | None:
-        """A player or replay joins ``name``: own the room (taking it over, with its
-        avatars, from a dead owner), or the URL of the live process that owns it."""
-        assert self.cluster is not None
-        lock = self._claiming.setdefault(name, asyncio.Lock())
-        async with lock:
-            room = self.rooms.get(name)
-            if room is not None and not room.relayed and name in self.cluster.owned:
-                return None
-            url = await self.cluster.claim(name)
-            if url is None:
-                room = self.room(name)
-                if room.relayed:  # its spectators stay; the mirror makes way for avatars
-                    room.relayed = False
-                    await self.cluster.unwatch(name)
-                await self._restore(room)
-        if url is not None and name not in self.rooms and not lock.locked():
-            self._claiming.pop(name, None)  # clients name rooms: this must not grow
-        return url
-
-    async def _restore(self, room: Room) -> None:
-        """The room's avatars as Redis has them, calibrated from their T-poses as by the
-        process that had them; their players resume within the reconnect grace."""
-        assert self.cluster is not None
-        mirror = {a for a, avatar in room.avatars.items()
-                  if self._owners.get(a) is None and not avatar.connected}
-        records = await self.cluster.records(room.name)
-        restored = 0
-        for record in records:
-            if record.avatar_id in room.avatars and record.avatar_id not in mirror:
-                continue  # a live avatar of this process: it knows better
-            mirror.discard(record.avatar_id)
-            room.avatars.pop(record.avatar_id, None)
-            if record.resume is None:  # a replay's: gone with its connection
-                room.remove_avatar(record.avatar_id)
-                continue
-            avatar = Avatar(record.avatar_id, record.display_name, record.resume,
-                            connected=False)
-            room.avatars[avatar.avatar_id] = avatar
-            if record.roles is not None and record.poses is not None:
-                try:
-                    room.calibrate(avatar, record.roles, record.poses)
-                except ValueError as err:
-                    log.warning("room %r: avatar %d not calibrated again: %s", room.name,
-                                avatar.avatar_id, err)
-            self._forget_later(room, avatar)
-            restored += 1
-        for avatar_id in mirror:  # on the spectators' screens, and no longer anywhere
-            room.remove_avatar(avatar_id)
-        if restored:
-            log.info("room %r: %d avatars back from Redis, calibrated", room.name, restored)
-
-    async def _watch(self, name: str) -> None:
-        """A spectator joins ``name``: where another process owns it, this process
-        receives its batches and rosters through Redis and keeps a mirror of its avatars."""
-        assert self.cluster is not None
-        if name in self.rooms:
-            return
-        room = self.room(name, relayed=True)
-        await self.cluster.watch(name)
-        await self._mirror(room)
-
-    async def _mirror(self, room: Room) -> None:
-        assert self.cluster is not None
-        for record in await self.cluster.records(room.name):
-            if record.info is not None and room.relayed:
-                room.avatars[record.avatar_id] = Avatar(
-                    record.avatar_id, record.display_name, "", info=record.info,
-                    connected=False)
-
-    def _relayed(self, name: str, data: bytes) -> None:
-        """What the owner of a room published, for this process's spectators of it."""
-        room = self.rooms.get(name)
-        if room is None or not room.relayed:
-            return
-        try:
-            envelope = open_envelope(data)
-            if envelope.sender == self.cluster.process_id:  # type: ignore[union-attr]
-                return
-            t = now()
-            self.metrics.relay_latency.add(t - envelope.t_published)
-            if envelope.kind == BATCH:
-                payload, batch = relayed_batch(envelope)
-                known = [a in room.avatars for a in batch.avatar_ids.tolist()]
-                if not all(known):  # before its roster (a snapshot being read): skipped
-                    self.metrics.frames_unsendable += known.count(False)
-                    if not any(known):
-                        return
-                    keep = [i for i, k in enumerate(known) if k]
-                    batch = AvatarBatch.from_frames([batch.frame(i) for i in keep],
-                                                    t_sent=batch.t_sent)
-                    payload = encode(batch)
-                self.metrics.frames_relayed += batch.size
-                room.deliver(RelayedBatch(payload, batch))
-            elif envelope.kind == ROSTER:
-                roster = relayed_roster(envelope)
-                for info in roster.avatars:
-                    avatar = room.avatars.get(info.avatar_id)
-                    if avatar is None:
-                        avatar = room.avatars[info.avatar_id] = Avatar(
-                            info.avatar_id, info.display_name, "", connected=False)
-                    avatar.info = info
-                for avatar_id in roster.removed:
-                    room.avatars.pop(avatar_id, None)
-                    for s in room.spectators.values():
-                        s.outbox.forget(avatar_id)
-                room.send_roster(envelope.payload)
-        except (ValueError, ProtocolError) as err:
-            self.metrics.rejected["relay"] += 1
-            if self.log_budget.take(now()):
-                log.warning("room %r: a message from Redis skipped: %s", name, err)
-
-    def _hand_over(self, name: str, url: str) -> None:
-        """Another process owns the room now (Redis was lost and another took it): its
-        players go there, its spectators stay and receive the owner's frames."""
-        room = self.rooms.get(name)
-        if room is None:
-            return
-        room.relayed = True  # first: nothing below goes to Redis
-        room.discard_pending()
-        for avatar_id in list(room.avatars):
-            ws = self._owners.get(avatar_id)
-            if ws is not None:
-                self._evict(ws, "room_moved", 1012, f"the room moved to {url[:60]}")
-            room.remove_avatar(avatar_id)
-
-        async def watch() -> None:
-            assert self.cluster is not None
-            await self.cluster.watch(name)
-            await self._mirror(room)
-        self._later(watch())
-
-    async def _rejoined(self) -> None:
-        """Redis is back: the owned rooms' records again (made while it was lost too),
-        the relayed rooms' mirrors again."""
-        assert self.cluster is not None
-        for room in list(self.rooms.values()):
-            if room.relayed:
-                await self._mirror(room)
-                continue
-            for avatar in room.avatars.values():
-                room.keep(avatar, resumable=avatar.avatar_id in self._owners
-                          or avatar.tpose is not None)
-
     @property
     def open_connections(self) -> int:
         """Websocket connections open now (admitted within the caps)."""
@@ -423,7 +270,7 @@ class Session:
             # (a traceback per connection, at the connection rate, floods the log)
             self.metrics.internal_errors += 1
             if self.log_budget.take(now()):
-                log.error("failed to handle a connection from %s: %s: %s", _peer(ws),
+                log.error("failed to handle a connection from %s: %s: %s", peer(ws),
                           type(exc).__name__, safe_text(str(exc), 160))
             log.debug("the failure in full", exc_info=True)
             with contextlib.suppress(Exception):
@@ -442,7 +289,7 @@ class Session:
         self._open_from[address] = self._open_from.get(address, 0) + 1
         self._errors[ws] = Budget(limits.errors_per_s, limits.error_burst)
         self._pings[ws] = Budget(limits.pings_per_s, limits.ping_burst)
-        _cap_send_buffers(ws, limits)
+        cap_send_buffers(ws, limits)
         try:
             await self._connection(ws)
         finally:
@@ -486,8 +333,8 @@ class Session:
             return
         room = self.room(hello.room)
         # who is who in the log: role, name, room and address on join and on leave
-        who = (f"{hello.role} {_safe(hello.display_name)} in room {_safe(hello.room)} "
-               f"from {_peer(ws)}")
+        who = (f"{hello.role} {safe_name(hello.display_name)} in room {safe_name(hello.room)} "
+               f"from {peer(ws)}")
         self._log_join("%s joined (connection %d)", who, conn_id)
         t_joined = now()
         try:
@@ -499,7 +346,7 @@ class Session:
                 await self._spectator(ws, conn_id, room, hello)
         finally:
             self._log_join("%s left after %.1f s (%s)", who, now() - t_joined,
-                           _closed_words(ws))
+                           closed_words(ws))
             rejections = self._rejection_logs.pop(ws, None)
             if rejections is not None:
                 rejections.summary()
@@ -553,7 +400,7 @@ class Session:
         except ProtocolError as err:
             self.metrics.rejected[err.code] += 1
             if self.log_budget.take(now()):  # one line per connection: capped too
-                log.info("refused a connection from %s: %s: %s", _peer(ws), err.code,
+                log.info("refused a connection from %s: %s: %s", peer(ws), err.code,
                          safe_text(err.message, 160))
             await ws.send(encode(Error(code=err.code, message=safe_text(err.message))))
             await ws.close(1008, err.code)
@@ -661,7 +508,7 @@ class Session:
                 del self._owners[avatar.avatar_id]
                 avatar.connected = False
                 avatar.connection = None
-                self._forget_later(room, avatar, at_once=said_bye or _closed_by_client(ws))
+                self._forget_later(room, avatar, at_once=said_bye or closed_by_client(ws))
 
     def _tracker_frame_now(self, room: Room, avatar: Avatar, frames: Budget,
                            data: bytes | bytearray | memoryview,
@@ -734,127 +581,6 @@ class Session:
         else:
             asyncio.get_running_loop().call_later(self.reconnect_grace, forget)
 
-    # ------------------------------------------------------------------ replays
-    async def _replay(self, ws: ServerConnection, conn_id: int, room: Room) -> None:
-        """A recording's rosters and avatar batches published into the room
-        (``server.replay``); its avatars leave with it. Each of its avatars has a player's
-        frame budget (a recorded room's players were out of step: a batch each), rosters
-        a player's calibration budget with a room's worth of burst."""
-        limits = self.limits
-        avatars = ReplayedAvatars(room, lambda: next(self._ids), limits, self.metrics)
-        frames_per_s = limits.frames_per_s
-        frames = frame_budget(limits, frames_per_s)
-        rosters = Budget(limits.calibrations_per_s, limits.players_per_room)
-        try:
-            await ws.send(encode(Welcome(protocol_version=PROTOCOL_VERSION,
-                                         connection_id=conn_id, avatar_id=None,
-                                         server_time=now())))
-            async for data in ws:
-                t_received = arrival_time(ws, now)
-                try:
-                    msg = decode(data, max_bytes=MAX_CLIENT_MESSAGE_BYTES)
-                    if isinstance(msg, AvatarBatch):
-                        if not frames.take(t_received, msg.size):
-                            raise self._limited("frames", frames_per_s)
-                        avatars.batch(msg, t_received)
-                    elif isinstance(msg, AvatarRoster):
-                        if not rosters.take(t_received):
-                            raise self._limited("calibrations", limits.calibrations_per_s)
-                        avatars.roster(msg)
-                        if frames_per_s != limits.frames_per_s * max(1, len(avatars.ids)):
-                            frames_per_s = limits.frames_per_s * max(1, len(avatars.ids))
-                            frames = frame_budget(limits, frames_per_s)
-                    elif isinstance(msg, Ping | Leave):
-                        await self._common(ws, msg, t_received, "replay")
-                    else:
-                        raise ProtocolError(ErrorCode.NOT_ALLOWED, f"a replay sends rosters "
-                                            f"and avatar batches, not {msg.type}")
-                except ProtocolError as err:
-                    await self._reject(ws, err)
-                except ConnectionClosed:
-                    raise
-                except Exception:  # a bug met by one message: it is answered, the rest goes on
-                    await self._internal_error(ws)
-        except ConnectionClosed:
-            pass
-        finally:
-            avatars.close()
-
-    # ------------------------------------------------------------------ spectators
-    async def _spectator(self, ws: ServerConnection, conn_id: int, room: Room,
-                         hello: Hello) -> None:
-        async def send_bytes(data: bytes) -> None:
-            await ws.send(data)
-
-        async def send(deliveries: list[Delivery]) -> None:
-            await send_deliveries(send_bytes, deliveries)
-            self.metrics.frames_delivered += len(deliveries)
-
-        outbox: Outbox[Delivery] = Outbox(send, hello.max_rate_hz)
-        spectator = Spectator(outbox, send_bytes, connection=ws)
-        try:
-            await ws.send(encode(Welcome(protocol_version=PROTOCOL_VERSION,
-                                         connection_id=conn_id, avatar_id=None,
-                                         server_time=now())))
-            for part in room.roster_messages(self.limits.roster_avatars_per_message,
-                                             self.limits.roster_message_bytes):
-                await ws.send(part)
-        except ConnectionClosed:  # gone right after its hello: nothing to undo yet
-            return
-        room.spectators[conn_id] = spectator
-        spectator.task = asyncio.get_running_loop().create_task(outbox.run())
-        reports = Budget(self.limits.reports_per_s, self.limits.report_burst)
-        try:
-            async for data in ws:
-                t_received = arrival_time(ws, now)
-                try:
-                    msg = decode_client(data)
-                    if isinstance(msg, TrackerFrame | Calibrate):
-                        raise ProtocolError(ErrorCode.NOT_ALLOWED,
-                                            f"a spectator only receives; {msg.type} is for "
-                                            "players")
-                    if isinstance(msg, ViewerReport):
-                        if not reports.take(t_received):
-                            raise self._limited("reports", self.limits.reports_per_s)
-                        self._viewer_report(msg, t_received)
-                        continue
-                    await self._common(ws, msg, t_received, "spectator")
-                except ProtocolError as err:
-                    await self._reject(ws, err)
-                except ConnectionClosed:
-                    raise
-                except Exception:  # a bug met by one message: it is answered, the rest goes on
-                    await self._internal_error(ws)
-        except ConnectionClosed:
-            pass
-        finally:
-            room.spectators.pop(conn_id, None)
-            outbox.close()  # what it still holds counts as dropped
-            task = spectator.task
-            task.cancel()
-            await asyncio.wait([task])  # and so does a send this cuts short
-            if not task.cancelled():
-                task.exception()  # retrieved: a send to a closed connection fails
-            self.metrics.frames_dropped += outbox.dropped
-
-    def _viewer_report(self, report: ViewerReport, t_received: float) -> None:
-        """A spectator's presentation times into the metrics, once every time is within
-        ``capture_skew_s`` of the report's arrival: a viewer hours off, or one that
-        reports the future, would spoil the histograms every scrape reads."""
-        skew = self.limits.capture_skew_s
-        for name in ("t_capture", "t_received", "t_presented"):
-            times: np.ndarray = getattr(report, name)
-            off = np.flatnonzero(~(np.abs(times - t_received) <= skew))
-            if off.size:
-                row = int(off[0])
-                raise ProtocolError(ErrorCode.INVALID, (
-                    f"viewer_report.{name}[{row}]: {float(times[row])!r} is "
-                    f"{float(times[row]) - t_received:+.3g} s off the server clock at its "
-                    f"arrival; more than capture_skew_s ({skew:g} s): is the clock synced?"))
-        self.metrics.viewer_reports += 1
-        self.metrics.viewer_latency.report(report.t_capture, report.t_received,
-                                           report.t_presented)
-
     # ------------------------------------------------------------------ stopping
     async def drain(self, timeout: float = DRAIN_TIMEOUT) -> bool:
         """Wait until no burst is open and every spectator's outbox has sent what it
@@ -896,7 +622,7 @@ class Session:
         rejections = self._rejection_logs.get(ws)
         if rejections is None:
             rejections = self._rejection_logs[ws] = RejectionLog(
-                log, _peer(ws), self.log_budget, now, self.limits.log_first_rejections,
+                log, peer(ws), self.log_budget, now, self.limits.log_first_rejections,
                 self.limits.log_interval_s)
         rejections.rejected(err.code, err.message)
         with contextlib.suppress(ConnectionClosed):
@@ -926,7 +652,7 @@ class Session:
     def _evict(self, ws: ServerConnection, limit: str, code: int, reason: str) -> None:
         self.metrics.limited[limit] += 1
         if self.log_budget.take(now()):
-            log.info("closing %s: %s", _peer(ws), reason)
+            log.info("closing %s: %s", peer(ws), reason)
         task = asyncio.get_running_loop().create_task(close_now(ws, code, reason))
         self._closing.add(task)  # held until done: the loop keeps only weak references
         task.add_done_callback(self._closing.discard)
@@ -943,209 +669,6 @@ class Session:
     async def _internal_error(self, ws: ServerConnection) -> None:
         self.metrics.internal_errors += 1
         if self.log_budget.take(now()):  # a client that found a bug must not flood the log
-            log.exception("failed to handle a message from %s", _peer(ws))
+            log.exception("failed to handle a message from %s", peer(ws))
         await self._reject(ws, ProtocolError(ErrorCode.INTERNAL,
                                              "the server failed to handle this message"))
-
-
-async def run_server(host: str, port: int, session: Session | None = None,
-                     stop: asyncio.Event | None = None,
-                     ready: Callable[[int], None] | None = None,
-                     handle_signals: bool = False,
-                     drain_timeout: float = DRAIN_TIMEOUT,
-                     tls: ssl.SSLContext | None = None,
-                     origins: Sequence[str] | None = None) -> Session:
-    """Serve until ``stop`` is set (or SIGINT/SIGTERM with ``handle_signals``), then
-    drain (``Session.drain``) and close every connection cleanly; ``ready(port)`` once
-    listening (port 0 picks a free one). ``tls``: serve wss:// (``server.tls``);
-    ``origins``: the browser origins allowed (requests without an Origin header too)."""
-    session = session or Session()
-    await session.start_cluster()  # ClusterError (one line) when Redis cannot be used
-    _say_access(session, host)
-    stop = stop or asyncio.Event()
-    loop = asyncio.get_running_loop()
-    if handle_signals:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(sig, stop.set)
-    server: Server
-    async with serve(session.handle, host, port, compression=None,
-                     create_connection=_connection_class(session),
-                     # GET /healthz, /metrics; upgrades within their address's budget
-                     process_request=session_routes(session),
-                     max_size=session.limits.max_message_bytes,
-                     max_queue=session.limits.max_queue, ssl=tls,
-                     close_timeout=CLOSE_TIMEOUT_S,
-                     origins=allowed_origins(origins)) as server:
-        bound = next(iter(server.sockets)).getsockname()[1]
-        if session.cluster is not None and not session.cluster.public_url:
-            # where the others send this process's players: as it listens (loopback
-            # and one-machine set-ups; behind a proxy, serve --public-url)
-            shown = "127.0.0.1" if host in ("", "0.0.0.0", "::") else host
-            session.cluster.public_url = (f"{'ws' if tls is None else 'wss'}://"
-                                          f"{shown}:{bound}")
-        log.info("posecast server on %s://%s:%d", "ws" if tls is None else "wss", host, bound)
-        log.info("health and metrics on the same port: %s://%s:%d/healthz and /metrics",
-                 "http" if tls is None else "https", host, bound)
-        if ready is not None:
-            ready(bound)
-        poller = (loop.create_task(session.busy.run(stop))
-                  if session.busy is not None else None)
-        watchdog = loop.create_task(session.watch())
-        try:
-            await stop.wait()
-        finally:
-            watchdog.cancel()
-            if poller is not None:
-                poller.cancel()
-                with contextlib.suppress(asyncio.CancelledError):
-                    await poller
-        if not await session.drain(drain_timeout):
-            await session.close_stalled()
-        server.close(close_connections=True)
-        await server.wait_closed()
-    for room in session.rooms.values():  # a burst opened while the connections closed
-        room.discard_pending()
-    session.avatars.close()
-    if session.cluster is not None:  # its rooms' keys go: others may take them at once
-        await session.cluster.close()
-    return session
-
-
-def _say_access(session: Session, host: str) -> None:
-    """Who may join, said once at start: an open server beyond loopback is a warning."""
-    if session.tokens is not None:
-        log.info("join tokens required: only tokens signed with this server's secret join")
-        return
-    log.info("open: anyone can join any room; --secret-file to require tokens")
-    if not is_loopback(host):
-        log.warning("listening on %s without a secret: anyone who reaches this port can "
-                    "join any room (posecast serve --secret-file F)", host or "every address")
-
-
-def _cap_send_buffers(ws: ServerConnection, limits: ServerLimits) -> None:
-    """Small kernel and transport buffers, so that a viewer's backlog shows at once in
-    the event loop (Spectator.direct), where latest-wins replaces stale frames: with
-    the kernel's defaults a stalled viewer's queue grew to ~3.9 MB, seconds of stale
-    frames (docs/performance.md, "Slow viewers")."""
-    transport = ws.transport
-    sock = transport.get_extra_info("socket") if transport is not None else None
-    if sock is None:
-        return
-    with contextlib.suppress(OSError, AttributeError):  # not TCP, or no such option
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, limits.send_buffer_bytes)
-        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NOTSENT_LOWAT,
-                        limits.send_unsent_bytes)
-    # a send waits until the transport has handed everything to the kernel
-    if transport.get_extra_info("ssl_object") is None:
-        transport.set_write_buffer_limits(high=0)
-        return
-    # TLS: the TLS layer pauses at a size >= its mark (plain transports at >), so 0
-    # would pause its every send for good; 1 means what 0 means elsewhere. Its TCP
-    # transport below holds 64 KiB unless told otherwise: a slow viewer fell 1.85 s behind
-    # instead of 0.69 s (tests/test_tls.py)
-    transport.set_write_buffer_limits(high=1)
-    below = tcp_under_tls(transport)
-    if below is not None:
-        below.set_write_buffer_limits(high=0)
-
-
-def _closed_by_client(ws: ServerConnection) -> bool:
-    """The client ended the connection on purpose (it sent a normal close first), not a
-    drop: its avatar need not wait for a reconnect."""
-    protocol = ws.protocol
-    return (protocol.close_rcvd is not None and bool(protocol.close_rcvd_then_sent)
-            and protocol.close_rcvd.code == CloseCode.NORMAL_CLOSURE)
-
-
-def client_address(ws: ServerConnection) -> object:
-    """Who the per-address limits count: the peer, or through a trusted proxy the client
-    its X-Forwarded-For names (``Session.admit``), as a (host, port) tuple."""
-    forwarded = getattr(ws, "forwarded_for", None)
-    return (forwarded, 0) if forwarded is not None else ws.remote_address
-
-
-def _peer(ws: ServerConnection) -> str:
-    """The client's address as host:port ([host]:port for IPv6), for log lines; through
-    a trusted proxy, "client via proxy:port"."""
-    address = ws.remote_address
-    if not isinstance(address, tuple) or len(address) < 2:
-        return "?"
-    host, port = address[0], address[1]
-    shown = f"[{host}]:{port}" if ":" in str(host) else f"{host}:{port}"
-    forwarded = getattr(ws, "forwarded_for", None)
-    return shown if forwarded is None else f"{forwarded} via {shown}"
-
-
-def _safe(text: str, limit: int = 40) -> str:
-    """Client text for a log line: quoted with control characters escaped (repr), cut
-    to ``limit`` characters, so that no client can forge or flood log lines."""
-    return repr(text[:limit]) + ("..." if len(text) > limit else "")
-
-
-def _closed_words(ws: ServerConnection) -> str:
-    """How the connection ended, e.g. "close 1000 'bye'" (1006: lost without a close)."""
-    if ws.close_code is None:
-        return "still open"
-    reason = f" {_safe(ws.close_reason)}" if ws.close_reason else ""
-    return f"close {ws.close_code}{reason}"
-
-
-class TimestampedServerConnection(ArrivalStamps, ServerConnection):
-    """A frame is received when its bytes reach this process (``protocol.arrivals``),
-    not when its handler gets to it: time spent behind the rest of a burst or a solve is
-    the server's. A player's tracker frames take its ``fast_path`` (set once joined):
-    no queue and no task switch, ~10 us of the server's time per frame."""
-
-    clock = staticmethod(now)
-    _cut_off = False
-    _dropped = False  # at accept (``accepts``): websockets never sees this connection
-    # a TCP connection's peer address -> whether to go on with it (``Session.accepts``)
-    accepts: Callable[[object], bool] | None = None
-
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        if self.accepts is not None and not self.accepts(transport.get_extra_info("peername")):
-            self._dropped = True  # no handler task is made: nothing else refers to it
-            cast(asyncio.Transport, transport).abort()  # (uvloop's is not a subclass)
-            return
-        super().connection_made(transport)
-
-    def connection_lost(self, exc: Exception | None) -> None:
-        if not self._dropped:
-            super().connection_lost(exc)
-
-    def data_received(self, data: bytes) -> None:
-        super().data_received(data)
-        # the server failed the connection (1009: a frame over max_size; 1002, 1007): it
-        # sent its close frame and its EOF, and websockets would read and discard what
-        # the client still sends until its close timeout (a client sending 1 MiB frames
-        # pushed ~56 GB through loopback that way). Reading stops now; the socket goes
-        # once the close frame has had FLOOD_CLOSE_S to reach the client
-        protocol = self.protocol  # (a close the client began also ends in an EOF)
-        if protocol.eof_sent and protocol.close_rcvd is None and not self._cut_off:
-            self._cut_off = True
-            cut_off(self.transport, FLOOD_CLOSE_S)
-
-
-def _connection_class(session: Session) -> type[TimestampedServerConnection]:
-    """The connections of ``session``'s server: each asks it whether to go on as it
-    is accepted."""
-    return type("SessionConnection", (TimestampedServerConnection,),
-                {"accepts": staticmethod(session.accepts)})
-
-
-def cut_off(transport: asyncio.Transport, grace_s: float) -> None:
-    """Read nothing more from ``transport`` and abort it after ``grace_s`` (what it has
-    written meanwhile reaches the peer, unless the peer does not read)."""
-    with contextlib.suppress(AttributeError, RuntimeError):  # closing already
-        transport.pause_reading()
-    asyncio.get_running_loop().call_later(grace_s, transport.abort)
-
-
-def install_fast_loop() -> bool:
-    """uvloop when installed: a faster event loop for the same code."""
-    try:
-        import uvloop
-    except ImportError:
-        return False
-    asyncio.set_event_loop_policy(uvloop.EventLoopPolicy())
-    return True

@@ -13,7 +13,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from posecast.protocol.validation import MAX_CLIENT_MESSAGE_BYTES
+from posecast.protocol.sizes import MAX_CLIENT_MESSAGE_BYTES
 
 
 @dataclass(frozen=True)

@@ -9,11 +9,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from posecast.solver import rotations as R
+from posecast.solver.choices import VIVE_DEVICES as VIVE_DEVICES
 from posecast.solver.skeleton import Skeleton
 
 # Vive device names, as DESIGN.md's eval contract spells them (and a chest tracker)
-VIVE_DEVICES = ("head", "hip", "left_hand", "right_hand", "left_forearm", "right_forearm",
-                "left_foot", "right_foot", "left_knee", "right_knee", "chest")
 DRIVING_DEVICES = ("head", "hip", "left_hand", "right_hand", "left_foot", "right_foot")
 HELDOUT_DEVICES = ("left_forearm", "right_forearm", "left_knee", "right_knee")
 

@@ -36,10 +36,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from posecast.solver import rotations as R
+from posecast.solver.choices import PREDICTORS
 
 Array = NDArray[np.float64]
 
-KINDS = ("velocity", "slimevr", "posecast")
+KINDS = PREDICTORS  # (solver.choices: the command line offers them before numpy loads)
 SLIMEVR_BUFFER = 6  # frame-to-frame deltas SlimeVR averages (its PREDICT_BUFFER)
 MAX_HORIZON_S = 0.25  # beyond this an extrapolated limb is a guess: hold there instead
 

@@ -16,9 +16,9 @@ import pytest
 from conftest import serving
 from prometheus_client.parser import text_string_to_metric_families
 
+from posecast.client.bench.demo import HEADSET_HZ
 from posecast.client.builtin import builtin_motion_path
-from posecast.client.demo import HEADSET_HZ
-from posecast.client.player import Ticker, run_player
+from posecast.client.session.player import Ticker, run_player
 from posecast.client.sources.base import DeviceSample, PoseSource
 from posecast.client.sources.bvh_source import BvhSource
 from posecast.server.app import Session

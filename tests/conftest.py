@@ -16,7 +16,8 @@ import pytest
 
 from posecast.client.viewer.bench import Clip, solve_builtin_clip
 from posecast.client.viewer.renderer import GLUnavailableError, Renderer
-from posecast.server.app import Session, run_server
+from posecast.server.app import Session
+from posecast.server.serving import run_server
 from posecast.solver.motion import ViveRecording
 from posecast.solver.readers.vive import read_vive
 

@@ -25,22 +25,22 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any, TypeVar
 
+from posecast.client.bench.network import NetworkSpec, ProxyProcess
 from posecast.client.builtin import builtin_motion_path
-from posecast.client.connection import SessionError
-from posecast.client.display_error import (
+from posecast.client.measure.display_error import (
     Arrival,
     CaptureLog,
     DisplayError,
     RecordingSource,
     measure_display_error,
 )
-from posecast.client.latency import LatencyRecorder
-from posecast.client.network import NetworkSpec, ProxyProcess
-from posecast.client.player import PlayerStats, Ticker, run_player
+from posecast.client.measure.latency import LatencyRecorder
+from posecast.client.session.connection import SessionError
+from posecast.client.session.player import PlayerStats, Ticker, run_player
+from posecast.client.session.spectator import Spectator, SpectatorStats
 from posecast.client.sources.base import PoseSource
 from posecast.client.sources.bvh_source import BvhSource
 from posecast.client.sources.tracker_set import TrackerSetSource
-from posecast.client.spectator import Spectator, SpectatorStats
 from posecast.client.viewer.headless import HeadlessViewerProcess
 from posecast.client.viewer.interpolation import Mode
 from posecast.protocol import AvatarBatch, AvatarRoster, ClockEstimator
@@ -219,8 +219,9 @@ def _serve_process(pipe: Connection, solver: str, cores: Cores, busy: bool,
                    redis_url: str | None = None, role: str = "server") -> None:
     """The server process: report the port, serve until told to stop, report metrics
     (and, one of many through Redis, the relay hops it measured)."""
-    from posecast.server.app import Session, install_fast_loop, run_server
+    from posecast.server.app import Session
     from posecast.server.cluster import Cluster
+    from posecast.server.serving import install_fast_loop, run_server
 
     pin_to_cores(role, cores)
     install_fast_loop()
@@ -476,7 +477,7 @@ def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
     with contextlib.ExitStack() as stack:
         redis_url = None
         if servers > 1:
-            from posecast.client.redis_process import RedisProcess
+            from posecast.client.bench.redis_process import RedisProcess
             redis_url = stack.enter_context(RedisProcess(
                 setup=partial(pin_to_cores, "server", cores))).url
         try:
@@ -570,7 +571,7 @@ def _network(port: int, spec: NetworkSpec | None, cores: Cores
 
 def _run(coro: Coroutine[Any, Any, T]) -> T:
     """The clients' event loop: uvloop when installed."""
-    from posecast.server.app import install_fast_loop
+    from posecast.server.serving import install_fast_loop
 
     install_fast_loop()
     return asyncio.run(coro)

@@ -42,8 +42,7 @@ from typing import Any
 from prometheus_client.parser import text_string_to_metric_families
 from websockets.asyncio.client import connect
 
-from posecast.client.builtin import builtin_motion_path
-from posecast.client.demo import (
+from posecast.client.bench.demo import (
     ROOM,
     EmbeddedServer,
     _DemoSpectator,
@@ -51,8 +50,9 @@ from posecast.client.demo import (
     demo_cores,
     pin_to_cores,
 )
-from posecast.client.latency import LatencyRecorder
-from posecast.client.redis_process import RedisProcess
+from posecast.client.bench.redis_process import RedisProcess
+from posecast.client.builtin import builtin_motion_path
+from posecast.client.measure.latency import LatencyRecorder
 from posecast.protocol import PROTOCOL_VERSION, Hello, encode
 from posecast.server.limits import ServerLimits
 
@@ -124,7 +124,7 @@ async def _join_counting(url: str, name: str) -> Any:
 def _load_process(pipe: Connection, url: str, count: int, core: int | None) -> None:
     """``count`` counting spectators of the server at ``url``: report when all joined,
     wait for the word, report the bytes each received and close."""
-    from posecast.server.app import install_fast_loop
+    from posecast.server.serving import install_fast_loop
 
     install_fast_loop()
     os.nice(LOAD_NICENESS)

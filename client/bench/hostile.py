@@ -26,13 +26,13 @@ from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidStatus
 from websockets.protocol import State
 
-from posecast.client.bench_target import TargetServer
+from posecast.client.bench.target import TargetServer
 from posecast.client.builtin import builtin_motion_path
-from posecast.client.connection import SessionError
-from posecast.client.player import calibrate_message, run_player
+from posecast.client.session.connection import SessionError
+from posecast.client.session.player import calibrate_message, run_player
+from posecast.client.session.spectator import Spectator
 from posecast.client.sources.base import now
 from posecast.client.sources.bvh_source import BvhSource
-from posecast.client.spectator import Spectator
 from posecast.protocol import (
     PROTOCOL_VERSION,
     AvatarBatch,

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from posecast.client.demo import DemoResult, run_demo
+from posecast.client.bench.demo import DemoResult, run_demo
 
 BUDGET_MS = 2.0
 

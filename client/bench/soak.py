@@ -16,12 +16,12 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
-from posecast.client.bench_target import TargetServer
+from posecast.client.bench.demo import ROOM, run_players
+from posecast.client.bench.target import TargetServer
 from posecast.client.builtin import builtin_motion_path
-from posecast.client.demo import ROOM, run_players
-from posecast.client.plot import Panel, Series, line_chart
+from posecast.client.measure.plot import Panel, Series, line_chart
+from posecast.client.session.spectator import Spectator
 from posecast.client.sources.base import now
-from posecast.client.spectator import Spectator
 
 JOIN_TIMEOUT = 60.0
 RSS_PLOT_SPAN_MB = 30.0  # the RSS budget: growth within it looks small

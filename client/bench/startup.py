@@ -65,15 +65,18 @@ def time_command(args: list[str]) -> tuple[float, bool]:
 def bench_startup(runs: int, progress: bool = True) -> dict[str, object]:
     cases: list[tuple[str, object]] = [
         ("posecast --version", lambda: time_command(["--version"])),
+        ("posecast play --help", lambda: time_command(["play", "--help"])),
         ("posecast serve (listening)", time_serve),
         ("posecast eval (built-in clip, done)", lambda: time_command(["eval"])),
     ]
     results = []
+    live = sys.stderr.isatty()  # to a pipe or a log: whole lines, never \r-joined fragments
     for label, run in cases:
         times, compiled = [], False
         for i in range(runs):
             if progress:
-                sys.stderr.write(f"\r{label}: run {i + 1}/{runs}")
+                step = f"{label}: run {i + 1}/{runs}"
+                sys.stderr.write(f"\r{step}" if live else f"{step}\n")
                 sys.stderr.flush()
             elapsed, did_compile = run()  # type: ignore[operator]
             times.append(elapsed)
@@ -81,7 +84,7 @@ def bench_startup(runs: int, progress: bool = True) -> dict[str, object]:
         results.append({"command": label, "runs": runs,
                         "seconds_p50": round(float(np.median(times)), 3),
                         "seconds_max": round(float(max(times)), 3), "compiled": compiled})
-    if progress:
+    if progress and live:
         sys.stderr.write("\r" + " " * 60 + "\r")
     return {"cpus": os.cpu_count(), "results": results}
 

@@ -20,7 +20,8 @@ METRICS_TIMEOUT = 10.0
 
 
 def _serve(pipe: Connection, solver: str) -> None:
-    from posecast.server.app import Session, install_fast_loop, run_server
+    from posecast.server.app import Session
+    from posecast.server.serving import install_fast_loop, run_server
 
     install_fast_loop()
 

@@ -14,19 +14,16 @@ import math
 import re
 from collections.abc import Iterator
 from pathlib import Path
-from typing import NoReturn
+from typing import TYPE_CHECKING, NoReturn
 from urllib.parse import urlsplit
 
-from posecast.client.network import NetworkSpec, parse_network_spec
-from posecast.client.tls import CAFileError, client_tls_context
-from posecast.protocol.validation import (
-    MAX_NAME_CHARS,
-    MAX_RATE_HZ,
-    MAX_TOKEN_CHARS,
-    check_room_name,
-)
+# light modules only (the parser uses these types): the rest is imported where it is used
+from posecast.protocol.sizes import MAX_NAME_CHARS, MAX_RATE_HZ, MAX_TOKEN_CHARS
 from posecast.solver.tracking.devices import parse_devices
-from posecast.solver.tracking.dropouts import DropoutSpec, parse_dropouts
+
+if TYPE_CHECKING:
+    from posecast.client.bench.network import NetworkSpec
+    from posecast.solver.tracking.dropouts import DropoutSpec
 
 LOG_LEVELS = ("debug", "info", "warning", "error")
 MAX_OFFSET_M = 100.0  # a shift further than this is a typo (the protocol caps positions)
@@ -201,6 +198,8 @@ def server_url(text: str) -> str:
 
 def room(text: str) -> str:
     try:
+        from posecast.protocol.validation import check_room_name
+
         return check_room_name(text)
     except ValueError as err:
         raise argparse.ArgumentTypeError(str(err)) from None
@@ -239,6 +238,8 @@ def duration(text: str) -> float:
 def network(text: str) -> NetworkSpec:
     """An emulated link for demo --network: 40ms+-10ms[,stall=200ms/5s][,seed=N]."""
     try:
+        from posecast.client.bench.network import parse_network_spec
+
         return parse_network_spec(text)
     except ValueError as err:
         raise argparse.ArgumentTypeError(str(err)) from None
@@ -264,6 +265,8 @@ def devices(text: str) -> tuple[str, ...]:
 def dropouts(text: str) -> DropoutSpec:
     """Simulated tracking losses (``solver.tracking.dropouts.parse_dropouts``)."""
     try:
+        from posecast.solver.tracking.dropouts import parse_dropouts
+
         return parse_dropouts(text)
     except ValueError as err:
         raise argparse.ArgumentTypeError(str(err).split(": ", 1)[1]) from None
@@ -271,6 +274,8 @@ def dropouts(text: str) -> DropoutSpec:
 
 def ca_file(text: str) -> Path:
     """PEM CA certificates that a wss:// server's certificate must chain to."""
+    from posecast.client.session.tls import CAFileError, client_tls_context
+
     path = existing_file(text)
     try:
         client_tls_context(path)
@@ -309,7 +314,7 @@ def new_file(text: str) -> Path:
 
 def vmc_target(text: str) -> tuple[str, int]:
     """A VMC receiver: HOST:PORT, HOST (port 39539) or [IPv6]:PORT."""
-    from posecast.client.vmc import VmcError, check_target, parse_target
+    from posecast.client.interop.vmc import VmcError, check_target, parse_target
 
     try:
         host, port = parse_target(text)

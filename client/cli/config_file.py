@@ -22,7 +22,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from posecast.client.arguments import _OWN_MESSAGE
+from posecast.client.cli.arguments import _OWN_MESSAGE
 
 # argparse's own actions that are not settings
 _NOT_KEYS = (argparse._HelpAction, argparse._VersionAction)

@@ -20,8 +20,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO, TypeVar
 
 if TYPE_CHECKING:  # play must not load the viewer's GL modules
-    from posecast.client.player import Player, PlayerStats
-    from posecast.client.spectator import Spectator, SpectatorStats
+    from posecast.client.session.player import Player, PlayerStats
+    from posecast.client.session.spectator import Spectator, SpectatorStats
     from posecast.client.viewer.core import ViewerStats
 
 T = TypeVar("T")

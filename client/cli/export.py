@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from posecast.client.recording import AvatarTake, avatar_takes, read_recording
+from posecast.client.interop.recording import AvatarTake, avatar_takes, read_recording
 from posecast.client.skeletons import skeleton_of
 from posecast.solver.bvh_export import export_bvh
 from posecast.solver.readers.errors import FormatError

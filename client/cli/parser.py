@@ -1,39 +1,32 @@
-"""The `posecast` command: parses arguments and calls library functions (thin on purpose,
-so that tests call the same functions)."""
+"""The `posecast` command line's parser: every command, option and help text, and the
+argument types only it uses."""
+
 
 from __future__ import annotations
 
 import argparse
-import asyncio
-import contextlib
-import json
-import logging
-import math
-import os
-import sys
-from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
-from urllib.parse import urlsplit
 
 from posecast import __version__
-from posecast.client import arguments as arg
-from posecast.client.jit import CompileNotice, warm_kernels
-from posecast.protocol.validation import ROOM_NAME_RULE
+from posecast.client.cli import arguments as arg
+
+# constants only: the parser is built before any command's libraries load, so that
+# --version and --help answer at once (numpy, numba and pydantic take ~1 s)
+from posecast.protocol.sizes import ROOM_NAME_RULE
 from posecast.server.limits import ServerLimits
-from posecast.solver.ik import DEFAULT_SOLVER, SOLVERS, SolverOptions
-from posecast.solver.motion import VIVE_DEVICES  # view --marker's joints
-from posecast.solver.prediction import KINDS as PREDICTORS
-from posecast.solver.tracking.devices import DEFAULT_SET, PRESETS
+from posecast.solver.choices import (
+    DEFAULT_SOLVER,
+    PREDICTORS,
+    SOLVERS,
+    VIVE_DEVICES,  # view --marker's joints
+)
+from posecast.solver.tracking.devices import DEFAULT_SET
 
 if TYPE_CHECKING:
-    import ssl
 
-    from posecast.client.connection import SessionError
-    from posecast.client.player import Player
-    from posecast.client.spectator import Spectator
-    from posecast.client.viewer import ViewerStats
-    from posecast.server.auth import JoinTokens
+    pass
+
 
 STOPPED = ("Ctrl-C (SIGINT) or SIGTERM stops it cleanly: it prints its summary and exits "
            "with status 130 (143 for SIGTERM), as a shell reports a signal.")
@@ -71,10 +64,14 @@ def _secret_file(text: str) -> Path:
 
 
 # client.bench_hostile.ATTACKS, without importing it (and websockets) for every command
+
+
 _HOSTILE_ATTACKS = ("calibrate-flood", "bad-messages", "big-frames", "poison-time",
                     "poison-calibration", "hello-strings", "reconnect-calibrate",
                     "join-leave")
 # client.bench_fanout.BUDGET_MS, likewise
+
+
 _FANOUT_BUDGET_MS = 25.0
 
 
@@ -109,6 +106,19 @@ def _positive_ints(text: str) -> list[int]:
     if not values or any(v <= 0 for v in values):
         raise argparse.ArgumentTypeError(f"expected positive numbers, got {text!r}")
     return values
+
+
+def _device_set(text: str) -> str:
+    """A tracker set as given (checked now; ``run_demo`` reads it)."""
+    arg.devices(text)
+    return text
+
+
+def _devices_or_roles_file(text: str) -> tuple[str, ...] | Path:
+    """``play --devices``: a tracker set, or (as before 2026-11) a roles TOML file."""
+    if text.lower().endswith(".toml"):
+        return arg.existing_file(text)
+    return arg.devices(text)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -580,545 +590,3 @@ def _parser() -> argparse.ArgumentParser:
                            help="as posecast --log-level")
         child.set_defaults(show_help=child.print_help)
     return p
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    parser = _parser()
-    args = parser.parse_args(argv)
-    if getattr(args, "config", None) is not None:  # the file's values become defaults
-        args = _with_config(parser, args, argv)
-    if args.command is None or (args.command == "bench" and args.bench is None):
-        args.show_help()
-        return 0
-    _configure_logging(args.command, args.log_level)
-    notice = CompileNotice().install()  # a command that must compile kernels says so
-    try:
-        return _command(args, notice)
-    except KeyboardInterrupt:  # Ctrl-C where no command handles it (e.g. while compiling)
-        print(f"posecast {args.command}: interrupted", file=sys.stderr)
-        return 130
-    finally:  # process-wide: tests call main() many times, each with its own stderr
-        notice.close()
-        notice.uninstall()
-
-
-def _with_config(parser: argparse.ArgumentParser, args: argparse.Namespace,
-                 argv: Sequence[str] | None) -> argparse.Namespace:
-    """The command line parsed again over ``--config``'s values; a bad file is one line
-    naming its line and key, exit 2, as a bad flag."""
-    from posecast.client.config_file import ConfigError, apply_config
-
-    command = next(child for child in arg.subparsers(parser)
-                   if child.prog == f"{parser.prog} {args.command}")
-    try:
-        apply_config(parser, command, args.config)
-    except ConfigError as err:
-        command.error(f"--config {err}")
-    return parser.parse_args(argv)
-
-
-def _configure_logging(command: str, level_name: str | None) -> None:
-    """Diagnostics go through logging to stderr: from info up for serve (its log of who
-    joins and leaves), from warning up for the others, whose results go to stdout."""
-    level = getattr(logging, (level_name or ("info" if command == "serve" else "warning"))
-                    .upper())
-    logging.basicConfig(format="%(asctime)s %(levelname)s %(name)s: %(message)s"
-                        if command == "serve" else
-                        f"posecast {command}: %(levelname)s: %(message)s")
-    logging.getLogger().setLevel(level)
-    # websockets' own "connection open/closed" lines name nobody: ours do (server.app)
-    logging.getLogger("websockets").setLevel(logging.DEBUG if level <= logging.DEBUG
-                                             else logging.WARNING)
-    logging.getLogger("numba").setLevel(logging.WARNING)  # its debug output is the compiler's
-
-
-def _eval_flags_given(args: argparse.Namespace, *more: tuple[str, bool]) -> list[str]:
-    """The options of eval given that the cross-validations do not take."""
-    return [flag for flag, on in (
-        ("--delay-ms", args.delay_ms is not None), ("--predict", args.predict),
-        ("--map", args.map is not None), ("--dropouts", args.dropouts is not None),
-        ("--naive", args.naive),
-        ("--devices", set(args.devices) != set(PRESETS[DEFAULT_SET])), *more) if on]
-
-
-def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
-    if args.command == "warm":
-        print(f"kernels ready in {warm_kernels(notice):.1f} s")
-        return 0
-    if args.command in ("demo", "bench"):  # before their processes start, each would compile
-        warm_kernels(notice)
-    if args.command == "eval" and args.cross_validate_body:
-        from posecast.client.crossval_body_command import run_cross_validate_body
-
-        return run_cross_validate_body(
-            args.files, args.solver, args.max_iterations, args.json,
-            given=_eval_flags_given(args, ("--smoothing", args.smoothing != 0.0),
-                                    ("--cross-validate", args.cross_validate)))
-    if args.command == "eval" and args.cross_validate:
-        from posecast.client.crossval_command import run_cross_validate
-
-        return run_cross_validate(args.files, args.solver, args.max_iterations,
-                                  args.calibration, args.smoothing, args.json,
-                                  given=_eval_flags_given(args))
-    if args.command == "eval":
-        from posecast.client.eval_command import run_eval
-
-        return run_eval(args.files, args.solver, args.max_iterations, args.calibration,
-                        args.smoothing, args.json, delay_ms=args.delay_ms,
-                        predict=args.predict, predictor=args.predictor,
-                        predict_on=args.predict_on, joint_map=args.map,
-                        devices=args.devices, dropouts=args.dropouts, naive=args.naive)
-    if args.command == "token":
-        return _token(args)
-    if args.command == "latency-video":
-        from posecast.client.latency_video import run_latency_video
-
-        return run_latency_video(args.video, args.tracker_box, args.avatar_box,
-                                 tracker=args.tracker, select=args.select, fps=args.fps,
-                                 plot=args.plot, as_json=args.json)
-    if args.command == "record":
-        from posecast.client.connection import SessionError
-        from posecast.client.record_command import run_record
-
-        if (status := _cafile_without_tls("record", args)) is not None:
-            return status
-        try:
-            return run_record(args.server, args.room, args.out, args.seconds, args.token,
-                              args.cafile, args.reconnect)
-        except SessionError as err:
-            return _fail("record", _session_words(err))
-        except OSError as err:  # the file (made since the arguments were checked)
-            return _fail("record", f"{args.out}: {err.strerror or err}")
-    if args.command == "replay":
-        from posecast.client.connection import SessionError
-        from posecast.client.record_command import run_replay
-
-        if (status := _cafile_without_tls("replay", args)) is not None:
-            return status
-        try:
-            return run_replay(args.file, args.server, args.room, args.speed, args.loop,
-                              args.token, args.cafile)
-        except SessionError as err:
-            return _fail("replay", _session_words(err))
-    if args.command == "export":
-        from posecast.client.export_command import run_export
-
-        return run_export(args.file, args.bvh, args.fps)
-    if args.command == "vmc":
-        from posecast.client.connection import SessionError
-        from posecast.client.vmc import VmcError
-        from posecast.client.vmc_command import run_vmc_command
-
-        if (status := _cafile_without_tls("vmc", args)) is not None:
-            return status
-        host, port = args.to
-        try:
-            return run_vmc_command(args.server, args.room, args.avatar, host, port,
-                                   args.seconds, args.rate, args.token, args.cafile)
-        except SessionError as err:
-            return _fail("vmc", _session_words(err))
-        except VmcError as err:
-            return _fail("vmc", err)
-    if args.command == "serve":
-        return _serve(args)
-    if args.command == "play":
-        return _play(args)
-    if args.command == "demo":
-        return _demo(args)
-    if args.command == "view":
-        return _view(args)
-    if args.command == "bench" and args.bench == "solver":
-        from posecast.client.bench import bench_solver, format_solver_table
-
-        result = bench_solver(args.solver, args.avatars,
-                              SolverOptions(max_iterations=args.max_iterations), args.seconds,
-                              args.devices)
-        print(json.dumps(result) if args.json else format_solver_table(result))
-        return 0
-    if args.command == "bench" and args.bench == "protocol":
-        from posecast.client.bench_protocol import bench_protocol, format_protocol_table
-
-        doc = bench_protocol()
-        print(json.dumps(doc) if args.json else format_protocol_table(doc))
-        return 0
-    if args.command == "bench" and args.bench == "render":
-        from posecast.client.viewer.bench import bench_render, format_render_table
-
-        width, height = args.size
-        result = bench_render(args.avatars, width, height, args.frames, out=args.out)
-        print(json.dumps(result) if args.json else format_render_table(result))
-        return 0
-    if args.command == "bench" and args.bench == "server":
-        from posecast.client.bench_server import bench_server, format_server_table
-
-        result = bench_server(args.counts, args.seconds,
-                              helper=None if args.helper else False)
-        print(json.dumps(result) if args.json else format_server_table(result))
-        return 0
-    if args.command == "bench" and args.bench == "soak":
-        from posecast.client.bench_soak import bench_soak, format_soak_table, plot_soak
-
-        doc = bench_soak(args.minutes, args.players, args.spectators, args.interval)
-        if args.plot is not None:
-            plot_soak(doc, args.plot)
-        print(json.dumps(doc) if args.json else format_soak_table(doc))
-        return 0
-    if args.command == "bench" and args.bench == "prediction":
-        from posecast.client.bench_prediction import (
-            bench_prediction,
-            format_prediction_table,
-            main_files,
-        )
-
-        files = main_files(args.files)
-        if files is None:
-            return 2
-        doc = bench_prediction(files)
-        print(json.dumps(doc) if args.json else format_prediction_table(doc))
-        return 0
-    if args.command == "bench" and args.bench == "hostile":
-        from posecast.client.bench_hostile import bench_hostile, format_hostile_table
-
-        doc = bench_hostile(args.attack, args.seconds)
-        print(json.dumps(doc) if args.json else format_hostile_table(doc))
-        return 0
-    if args.command == "bench" and args.bench == "fanout":
-        return _bench_fanout(args)
-    if args.command == "bench" and args.bench == "startup":
-        from posecast.client.bench_startup import bench_startup, format_startup_table
-
-        doc = bench_startup(args.runs)
-        print(json.dumps(doc) if args.json else format_startup_table(doc))
-        return 0
-    return 2
-
-
-def _bench_fanout(args: argparse.Namespace) -> int:
-    from posecast.client.bench_fanout import bench_fanout, format_fanout_table, format_step
-    from posecast.client.redis_process import RedisMissingError
-
-    try:  # a line per step as it ends: a whole run takes minutes
-        doc = bench_fanout(args.processes, args.players, args.start, args.seconds,
-                           args.budget_ms, args.max, args.repeat,
-                           progress=lambda step: print(format_step(step), file=sys.stderr,
-                                                       flush=True))
-    except RedisMissingError as err:
-        return _fail("bench fanout", err)
-    except RuntimeError as err:  # spectators that could not join, a server that died
-        return _fail("bench fanout", err)
-    print(json.dumps(doc) if args.json else format_fanout_table(doc))
-    return 0
-
-
-def _view(args: argparse.Namespace) -> int:
-    from posecast.client.connection import SessionError
-    from posecast.client.console import view_summary
-    from posecast.client.viewer import GLUnavailableError, NoDisplayError
-
-    if (status := _cafile_without_tls("view", args)) is not None:
-        return status
-    watched: list[Spectator] = []
-    try:
-        stats, signum = asyncio.run(_view_live(args, watched))
-    except (NoDisplayError, GLUnavailableError) as err:
-        return _fail("view", err)
-    except SessionError as err:
-        return _fail("view", _session_words(err))
-    spectator = watched[0].stats if watched else None
-    if args.json:
-        print(json.dumps(stats.as_json() if stats is not None else {}))
-    else:
-        for line in view_summary(stats, spectator, args.out if args.headless else None):
-            print(line)
-    return 128 + signum if signum else 0
-
-
-async def _view_live(args: argparse.Namespace, watched: list[Spectator]
-                     ) -> tuple[ViewerStats | None, int]:
-    """The viewer, with a word on stderr about where it joined and whom it waits for,
-    until its frames are done, its window closes or a signal stops it."""
-    from posecast.client.connection import Reconnect, stop_task
-    from posecast.client.console import StatusLine, report_spectator, run_until_signal
-    from posecast.client.viewer import Mode, ViewMode, run_headless_viewer, run_window_viewer
-
-    status = StatusLine("posecast view")
-    stop = asyncio.Event()
-    reporters: list[asyncio.Task[None]] = []
-
-    def on_spectator(spectator: Spectator) -> None:
-        if args.reconnect:  # a word on stderr when the session is lost and when it is back
-            spectator.reconnect = Reconnect(say=status.say)
-        watched.append(spectator)
-        reporters.append(asyncio.create_task(report_spectator(spectator, status)))
-
-    width, height = args.size
-    mode, view = Mode(args.mode), ViewMode(args.view)
-    run = (run_headless_viewer(args.server, args.room, args.frames or 100, args.out, width,
-                               height, interval_ms=1000.0 / args.fps, mode=mode, view=view,
-                               max_rate_hz=args.max_rate, token=args.token,
-                               cafile=args.cafile, stop=stop,
-                               on_spectator=on_spectator, marker=args.marker)
-           if args.headless else
-           run_window_viewer(args.server, args.room, width, height, fps=args.fps, mode=mode,
-                             view=view, max_rate_hz=args.max_rate, frames=args.frames,
-                             screenshot=args.screenshot, token=args.token,
-                             cafile=args.cafile, stop=stop,
-                             on_spectator=on_spectator, marker=args.marker))
-    try:
-        return await run_until_signal(run, stop)
-    finally:
-        for task in reporters:
-            await stop_task(task)
-        status.clear()
-
-
-def _fail(command: str, message: object) -> int:
-    print(f"posecast {command}: {message}", file=sys.stderr)
-    return 1
-
-
-def _session_words(err: SessionError) -> str:
-    """'cannot reach URL: why' when no websocket opened; else the session's own line
-    (the server's reason when it refused the join)."""
-    return str(err) if err.reached else f"cannot reach {err.url}: {err.reason}"
-
-
-def _join_tokens(secret_file: Path | None) -> JoinTokens | None:
-    """Tokens with the secret of --secret-file, else of $POSECAST_SECRET, else None;
-    SecretError (one line) if that secret is unreadable or too short."""
-    from posecast.server.auth import JoinTokens, load_secret
-
-    secret = load_secret(secret_file, os.environ)
-    return JoinTokens(secret) if secret is not None else None
-
-
-def _token(args: argparse.Namespace) -> int:
-    from posecast.server.auth import SECRET_ENV, SecretError
-
-    try:
-        tokens = _join_tokens(args.secret_file)
-    except SecretError as err:
-        return _usage("token", str(err))
-    if tokens is None:
-        return _usage("token", f"needs the server's secret: --secret-file FILE, or "
-                      f"${SECRET_ENV}")
-    try:
-        print(tokens.mint(args.room, args.role, args.ttl, args.name))
-    except ValueError as err:
-        return _usage("token", str(err))
-    return 0
-
-
-def _usage(command: str, message: str) -> int:
-    """A bad command line found after parsing: one line, as argparse's, status 2."""
-    print(f"posecast {command}: {message} (see posecast {command} --help)", file=sys.stderr)
-    return 2
-
-
-def _serve(args: argparse.Namespace) -> int:
-    from posecast.server.app import Session, install_fast_loop, run_server
-    from posecast.server.auth import SecretError
-
-    try:
-        tokens = _join_tokens(args.secret_file)
-    except SecretError as err:  # $POSECAST_SECRET too short (a file is checked on parsing)
-        return _usage("serve", str(err))
-
-    try:
-        limits = ServerLimits().with_text(args.limit)
-    except ValueError as err:  # limits that do not go together (see _limit)
-        print(f"posecast serve: {err} (--limit, or [limits] in --config; see posecast serve "
-              "--help)", file=sys.stderr)
-        raise SystemExit(2) from None  # a usage error, as argparse ends one
-    try:  # before the solver warms up: a bad certificate is told at once
-        tls = _server_tls(args)
-    except ValueError as err:
-        print(f"posecast serve: {err} (see posecast serve --help)", file=sys.stderr)
-        return 2
-    if args.public_url is not None and args.redis is None:
-        return _usage("serve", "--public-url is for --redis: where other processes send "
-                               "this one's players")
-    install_fast_loop()
-    cluster = None
-    if args.redis is not None:
-        from posecast.server.cluster import Cluster
-        cluster = Cluster(args.redis, args.public_url or "")
-    session = Session(tokens=tokens, solver=args.solver, busy=args.busy_poll,
-                      helper=None if args.helper else False,
-                      limits=limits, cluster=cluster,
-                      trusted_proxies=args.trusted_proxies or ())
-    from posecast.server.cluster import ClusterError
-    try:
-        asyncio.run(run_server(args.host, args.port, session, handle_signals=True,
-                               tls=tls, origins=args.origins))
-    except ClusterError as err:
-        return _fail("serve", f"{err} (is redis-server running there?)")
-    except OSError as err:
-        return _fail("serve", f"cannot listen on {args.host}:{args.port}: {err.strerror}")
-    print(json.dumps(session.metrics.as_json()))
-    return 0
-
-
-def _server_tls(args: argparse.Namespace) -> ssl.SSLContext | None:
-    """serve's TLS context from --certfile and --keyfile (None: neither); ValueError
-    in one line (server.tls.TLSConfigError) if they cannot serve."""
-    from posecast.server.tls import server_tls_context
-
-    if args.certfile is None and args.keyfile is None:
-        return None
-    if args.certfile is None or args.keyfile is None:
-        given, missing = (("--certfile", "--keyfile") if args.keyfile is None
-                          else ("--keyfile", "--certfile"))
-        raise ValueError(f"{given} needs {missing} too")
-    return server_tls_context(args.certfile, args.keyfile)
-
-
-def _cafile_without_tls(command: str, args: argparse.Namespace) -> int | None:
-    """Status 2 if --cafile came with a ws:// URL, where it would silently do nothing."""
-    if args.cafile is None or urlsplit(args.server).scheme == "wss":
-        return None
-    print(f"posecast {command}: --cafile is for wss:// servers, but --server is "
-          f"{args.server!r} (see posecast {command} --help)", file=sys.stderr)
-    return 2
-
-
-def _device_set(text: str) -> str:
-    """A tracker set as given (checked now; ``run_demo`` reads it)."""
-    arg.devices(text)
-    return text
-
-
-def _devices_or_roles_file(text: str) -> tuple[str, ...] | Path:
-    """``play --devices``: a tracker set, or (as before 2026-11) a roles TOML file."""
-    if text.lower().endswith(".toml"):
-        return arg.existing_file(text)
-    return arg.devices(text)
-
-
-def _play(args: argparse.Namespace) -> int:
-    from posecast.client.connection import SessionError
-    from posecast.client.console import player_summary
-    from posecast.client.player import Player
-    from posecast.client.sources import open_source
-    from posecast.client.sources.base import SourceError
-    from posecast.solver.readers.errors import FormatError
-
-    if (status := _cafile_without_tls("play", args)) is not None:
-        return status
-    if isinstance(args.devices, Path):  # the old spelling of --roles FILE.toml
-        print(f"posecast play: --devices {args.devices} is a roles file: say --roles "
-              f"{args.devices} (--devices now names a tracker set)", file=sys.stderr)
-        args.roles, args.devices = args.devices, None
-    try:
-        source = open_source(args.source, args.roles, loop=args.loop, offset=args.offset)
-    except (SourceError, FormatError) as err:
-        return _fail("play", err)
-    if args.devices is not None or args.dropouts is not None:
-        from posecast.client.sources.tracker_set import TrackerSetSource
-        source = TrackerSetSource(source, args.devices, args.dropouts)
-    recording = None
-    if args.record is not None:
-        from posecast.client.sources.recording_source import RecordingSource
-        try:
-            source = recording = RecordingSource(source, args.record)
-        except OSError as err:
-            source.close()
-            return _fail("play", f"--record {args.record}: {err.strerror or err}")
-    delay = args.calibrate_in if args.calibrate_in is not None else (
-        3.0 if args.source == "openvr" else 0.0)
-    try:
-        player = Player(args.server, args.room, args.name, source, token=args.token,
-                        cafile=args.cafile)
-        signum = asyncio.run(_play_live(player, delay, args.seconds, args.source,
-                                        args.reconnect))
-    except SessionError as err:
-        return _fail("play", _session_words(err))
-    finally:
-        source.close()
-    print(player_summary(player.stats))
-    if recording is not None:
-        print(f"kept {recording.frames} frames in {recording.path}"
-              + (f" ({recording.skipped} left out: a device of the first frame was "
-                 "missing)" if recording.skipped else ""))
-    return 128 + signum if signum else 0
-
-
-async def _play_live(player: Player, delay: float, seconds: float | None,
-                     source: str, reconnect: bool = True) -> int:
-    """Stream with a word on stderr about where it joined and a progress line, until
-    the source or the time ends or a signal stops it (its number is returned)."""
-    from posecast.client.connection import Reconnect, stop_task
-    from posecast.client.console import StatusLine, report_player, run_until_signal
-
-    status = StatusLine("posecast play")
-    if reconnect:  # a word on stderr when the session is lost and when it is back
-        player.reconnect = Reconnect(say=status.say)
-    stop = asyncio.Event()
-    reporter = asyncio.create_task(report_player(player, status, source))
-    try:
-        _, signum = await run_until_signal(_calibrate_and_stream(player, delay, seconds, stop),
-                                           stop)
-    finally:
-        await stop_task(reporter)
-        status.clear()
-    return signum
-
-
-async def _calibrate_and_stream(player: Player, delay: float, seconds: float | None,
-                                stop: asyncio.Event) -> None:
-    """Count the player into the T-pose, then stream; Enter on a terminal recalibrates."""
-    for left in range(math.ceil(delay), 0, -1):
-        print(f"stand in a T-pose, arms out sideways: calibrating in {left} s", flush=True)
-        with contextlib.suppress(TimeoutError):
-            await asyncio.wait_for(stop.wait(), min(1.0, delay - (left - 1)))
-        if stop.is_set():
-            return
-    loop = asyncio.get_running_loop()
-    interactive = sys.stdin.isatty()
-    if interactive:
-        def recalibrate() -> None:
-            sys.stdin.readline()
-            print("recalibrating: hold the T-pose", flush=True)
-            player.recalibrate()
-        loop.add_reader(sys.stdin.fileno(), recalibrate)
-    try:
-        await player.run(seconds, stop)
-    finally:
-        if interactive:
-            loop.remove_reader(sys.stdin.fileno())
-
-
-def _demo(args: argparse.Namespace) -> int:
-    from posecast.client.demo import DemoError, run_demo
-    from posecast.client.latency import format_latency_table
-    from posecast.client.redis_process import RedisMissingError
-
-    try:
-        limits = ServerLimits().with_text(args.limit)
-    except ValueError as err:  # limits that do not go together (see _limit)
-        print(f"posecast demo: {err} (--limit)", file=sys.stderr)
-        raise SystemExit(2) from None
-    try:
-        result = run_demo(args.players, args.spectators, args.seconds, solver=args.solver,
-                          render=args.render, render_mode=args.render_mode,
-                          busy=None if args.busy_poll else False,
-                          helper=None if args.helper else False, network=args.network,
-                          limits=limits, servers=args.servers, devices=args.devices,
-                          dropouts=args.dropouts)
-    except RedisMissingError as err:
-        print(f"posecast demo: --servers {args.servers}: {err}", file=sys.stderr)
-        return 1
-    except DemoError as err:  # e.g. a link whose stalls make the server refuse frames
-        print(f"posecast demo: {err}", file=sys.stderr)
-        return 1
-    if args.json:
-        print(json.dumps(result.as_json()))
-    else:
-        print(result.format_counts())
-        print(format_latency_table(result.latency.summary(), result.latency.counts()))
-        print(result.format_display_error())
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -8,11 +8,11 @@ import sys
 import time
 from pathlib import Path
 
-from posecast.client.connection import Reconnect, stop_task
-from posecast.client.console import REFRESH_S, StatusLine, run_until_signal
-from posecast.client.recorder import RecordingSpectator, RecordStats, record_room
-from posecast.client.recording import read_recording
-from posecast.client.replay import ReplayStats, replay_recording
+from posecast.client.cli.console import REFRESH_S, StatusLine, run_until_signal
+from posecast.client.interop.recorder import RecordingSpectator, RecordStats, record_room
+from posecast.client.interop.recording import read_recording
+from posecast.client.interop.replay import ReplayStats, replay_recording
+from posecast.client.session.connection import Reconnect, stop_task
 from posecast.solver.readers.errors import FormatError
 
 

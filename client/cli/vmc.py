@@ -8,8 +8,8 @@ import sys
 import time
 from pathlib import Path
 
-from posecast.client.console import REFRESH_S, StatusLine, run_until_signal
-from posecast.client.vmc import VmcStats, run_vmc
+from posecast.client.cli.console import REFRESH_S, StatusLine, run_until_signal
+from posecast.client.interop.vmc import VmcStats, run_vmc
 
 
 def run_vmc_command(url: str, room: str, avatar: str | None, host: str, port: int,

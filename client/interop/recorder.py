@@ -7,10 +7,10 @@ import asyncio
 from dataclasses import dataclass
 from pathlib import Path
 
-from posecast.client.connection import Reconnect
-from posecast.client.recording import RecordingWriter
+from posecast.client.interop.recording import RecordingWriter
+from posecast.client.session.connection import Reconnect
+from posecast.client.session.spectator import Spectator, SpectatorStats
 from posecast.client.sources.base import now
-from posecast.client.spectator import Spectator, SpectatorStats
 from posecast.protocol import AvatarBatch, AvatarRoster, ClockEstimator
 
 

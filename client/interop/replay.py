@@ -18,8 +18,8 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from posecast.client.connection import Session, make_hello, open_session, stop_task
-from posecast.client.recording import RecordedMessage, Recording
+from posecast.client.interop.recording import RecordedMessage, Recording
+from posecast.client.session.connection import Session, make_hello, open_session, stop_task
 from posecast.client.sources.base import now
 from posecast.protocol import (
     MAX_CLIENT_MESSAGE_BYTES,

@@ -46,9 +46,9 @@ from pythonosc.osc_message import OscMessage
 from pythonosc.osc_message_builder import OscMessageBuilder
 from pythonosc.udp_client import UDPClient
 
+from posecast.client.session.spectator import ReceivedFrame, Spectator
 from posecast.client.skeletons import skeleton_of
 from posecast.client.sources.base import now
-from posecast.client.spectator import ReceivedFrame, Spectator
 from posecast.protocol import AvatarBatch, AvatarInfo, AvatarRoster, ClockEstimator
 from posecast.solver.humanoid import HumanoidMap, humanoid_map, humanoid_pose
 from posecast.solver.skeleton import SkeletonError

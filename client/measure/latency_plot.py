@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from posecast.client.plot import COLORS, nice_ticks
+from posecast.client.measure.plot import COLORS, nice_ticks
 from posecast.solver.video_latency import Peaks, VideoLatency
 
 WIDTH = 1100

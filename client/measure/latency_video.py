@@ -198,7 +198,7 @@ def run_latency_video(video: Path, tracker_box: Box | None, avatar_box: Box | No
     except VideoError as err:
         return _fail(str(err), err.status)
     if plot is not None:
-        from posecast.client.latency_plot import plot_latency
+        from posecast.client.measure.latency_plot import plot_latency
 
         plot_latency(result, plot, title=f"{video.name}, {tracker.upper()}")
     doc = result.as_json()

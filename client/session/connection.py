@@ -37,8 +37,8 @@ from websockets.exceptions import (
 )
 from websockets.protocol import State
 
+from posecast.client.session.tls import CAFileError, client_tls_context, tls_failure
 from posecast.client.sources.base import now
-from posecast.client.tls import CAFileError, client_tls_context, tls_failure
 from posecast.protocol import (
     MAX_MESSAGE_BYTES,
     PROTOCOL_VERSION,

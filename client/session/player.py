@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import cast
 
-from posecast.client.connection import (
+from posecast.client.session.connection import (
     Reconnect,
     Session,
     SessionError,

@@ -18,7 +18,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from posecast.client.connection import (
+from posecast.client.measure.latency import LatencyRecorder
+from posecast.client.session.connection import (
     Reconnect,
     Session,
     SessionError,
@@ -26,7 +27,6 @@ from posecast.client.connection import (
     open_session,
     stop_task,
 )
-from posecast.client.latency import LatencyRecorder
 from posecast.client.sources.base import now
 from posecast.protocol import (
     AvatarBatch,

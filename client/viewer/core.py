@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from posecast.client.latency import LatencyRecorder
+from posecast.client.measure.latency import LatencyRecorder
 from posecast.client.viewer.camera import Camera, OrbitCamera
 from posecast.client.viewer.interpolation import Mode
 from posecast.client.viewer.marker import MARKER_JOINTS, MarkerOverlay, marker_centres

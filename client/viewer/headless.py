@@ -33,8 +33,8 @@ import numpy as np
 from numpy.typing import NDArray
 from PIL import Image
 
+from posecast.client.session.spectator import Spectator, SpectatorStats
 from posecast.client.sources.base import now
-from posecast.client.spectator import Spectator, SpectatorStats
 from posecast.client.viewer.camera import OrbitCamera
 from posecast.client.viewer.core import Viewer, ViewerStats
 from posecast.client.viewer.interpolation import Interpolator, Mode

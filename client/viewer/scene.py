@@ -16,7 +16,7 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
-from posecast.client.spectator import ReceivedFrame, Spectator
+from posecast.client.session.spectator import ReceivedFrame, Spectator
 from posecast.client.viewer.camera import Camera, OrbitCamera, first_person, mirror
 from posecast.client.viewer.interpolation import Interpolator, Mode, Sampled
 from posecast.client.viewer.renderer import AvatarDraw, PosedScene

@@ -32,8 +32,8 @@ import moderngl
 import numpy as np
 from PIL import Image
 
+from posecast.client.session.spectator import Spectator
 from posecast.client.sources.base import now
-from posecast.client.spectator import Spectator
 from posecast.client.viewer.core import Viewer, ViewerStats
 from posecast.client.viewer.interpolation import Interpolator, Mode
 from posecast.client.viewer.renderer import Renderer

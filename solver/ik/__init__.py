@@ -22,6 +22,8 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
+from posecast.solver.choices import DEFAULT_SOLVER as DEFAULT_SOLVER
+from posecast.solver.choices import SOLVERS as SOLVERS
 from posecast.solver.ik.analytic import solve_analytic_batch
 from posecast.solver.ik.chains import ChainArrays, chain_arrays
 from posecast.solver.ik.dls import solve_dls_batch
@@ -36,10 +38,8 @@ from posecast.solver.tracking.layout import ND
 # solves. Read when numba starts its threads; a value already set wins.
 os.environ.setdefault("GOMP_SPINCOUNT", "1000")
 
-SOLVERS = ("analytic", "dls", "paper")
 # paper: metres (and radians) of error one iteration may act on; see solver/ik/paper.py
 STEP_LIMIT = 0.005
-DEFAULT_SOLVER = "analytic"
 
 
 @dataclass(frozen=True)

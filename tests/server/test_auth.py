@@ -21,16 +21,16 @@ import jwt
 import pytest
 from websockets.asyncio.client import connect
 
-from posecast.client.arguments import duration
 from posecast.client.builtin import builtin_motion_path
 from posecast.client.cli import main
-from posecast.client.connection import Reconnect, SessionError, make_hello, open_session
-from posecast.client.player import Player
+from posecast.client.cli.arguments import duration
+from posecast.client.session.connection import Reconnect, SessionError, make_hello, open_session
+from posecast.client.session.player import Player
+from posecast.client.session.spectator import Spectator
+from posecast.client.session.tls import client_tls_context
 from posecast.client.sources import open_source
-from posecast.client.spectator import Spectator
-from posecast.client.tls import client_tls_context
 from posecast.protocol import Error, ErrorCode, decode, encode
-from posecast.server.app import Session, run_server
+from posecast.server.app import Session
 from posecast.server.auth import (
     MIN_SECRET_BYTES,
     SECRET_ENV,
@@ -41,6 +41,7 @@ from posecast.server.auth import (
     load_secret,
     read_secret_file,
 )
+from posecast.server.serving import run_server
 from posecast.server.tls import server_tls_context
 
 SECRET = b"s3cret-of-this-test-server-0123456789abcdef"  # 42 bytes

@@ -23,16 +23,16 @@ from prometheus_client.parser import text_string_to_metric_families
 from pydantic import ValidationError
 
 from posecast.client import cli
-from posecast.client.bench_fanout import BUDGET_MS, MAX_LOST, Step, _Search, held_step
+from posecast.client.bench.fanout import BUDGET_MS, MAX_LOST, Step, _Search, held_step
+from posecast.client.bench.redis_process import RedisMissingError, RedisProcess, free_port
 from posecast.client.builtin import builtin_motion_path
 from posecast.client.cli import main
-from posecast.client.connection import Reconnect
-from posecast.client.player import Player
-from posecast.client.redis_process import RedisMissingError, RedisProcess, free_port
+from posecast.client.session.connection import Reconnect
+from posecast.client.session.player import Player
+from posecast.client.session.spectator import Spectator
 from posecast.client.sources import open_source
-from posecast.client.spectator import Spectator
 from posecast.protocol import AvatarBatch, ClockEstimator, Redirect, decode, encode
-from posecast.server.app import Session, run_server
+from posecast.server.app import Session
 from posecast.server.cluster import Cluster, owner_key
 from posecast.server.relay import (
     BATCH,
@@ -42,6 +42,7 @@ from posecast.server.relay import (
     relayed_batch,
     wall_minus_clock,
 )
+from posecast.server.serving import run_server
 
 TIMEOUT = 60.0
 QUICK = {"first_s": 0.05, "max_s": 0.2}

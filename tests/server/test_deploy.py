@@ -30,20 +30,20 @@ from urllib.parse import urlsplit
 
 import pytest
 import yaml
+from conftest import REPO_ROOT
 from test_cli_errors import WAIT, Command, _closed_port
 from test_cluster import Process, running, until
 
-from posecast.client import arguments
+from posecast.client.bench.redis_process import RedisMissingError, RedisProcess, free_port
 from posecast.client.builtin import builtin_motion_path
-from posecast.client.cli import _parser
-from posecast.client.config_file import config_defaults, option_keys
-from posecast.client.player import Player
-from posecast.client.redis_process import RedisMissingError, RedisProcess, free_port
+from posecast.client.cli import _parser, arguments
+from posecast.client.cli.config_file import config_defaults, option_keys
+from posecast.client.session.player import Player
+from posecast.client.session.spectator import Spectator
 from posecast.client.sources import open_source
-from posecast.client.spectator import Spectator
 from posecast.server.limits import ServerLimits
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = REPO_ROOT
 DEPLOY = REPO / "deploy"
 EXAMPLE = DEPLOY / "posecast.toml"
 UNIT = DEPLOY / "posecast.service"

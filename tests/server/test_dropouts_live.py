@@ -11,11 +11,11 @@ import numpy as np
 from conftest import serving
 
 from posecast.client.builtin import builtin_motion_path
-from posecast.client.player import Player
+from posecast.client.session.player import Player
+from posecast.client.session.spectator import Spectator
 from posecast.client.sources.base import DeviceSample, PoseSource
 from posecast.client.sources.bvh_source import BvhSource
 from posecast.client.sources.tracker_set import TrackerSetSource
-from posecast.client.spectator import Spectator
 from posecast.protocol import AvatarBatch, ClockEstimator
 from posecast.server.app import Session
 from posecast.solver.tracking.devices import PRESETS

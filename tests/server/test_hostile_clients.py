@@ -27,8 +27,8 @@ from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed, InvalidMessage, InvalidStatus
 
 from posecast.client.builtin import builtin_motion_path
-from posecast.client.connection import SessionError, open_session
-from posecast.client.player import calibrate_message
+from posecast.client.session.connection import SessionError, open_session
+from posecast.client.session.player import calibrate_message
 from posecast.client.sources.bvh_source import BvhSource
 from posecast.protocol import (
     PROTOCOL_VERSION,

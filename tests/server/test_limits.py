@@ -17,7 +17,7 @@ from websockets.exceptions import ConnectionClosed
 from websockets.protocol import State
 
 from posecast.client.cli import main
-from posecast.client.spectator import Spectator
+from posecast.client.session.spectator import Spectator
 from posecast.protocol import (
     PROTOCOL_VERSION,
     AvatarBatch,

@@ -26,7 +26,7 @@ from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed
 
 from posecast.client.builtin import builtin_motion_path
-from posecast.client.player import calibrate_message
+from posecast.client.session.player import calibrate_message
 from posecast.client.sources.base import DeviceSample
 from posecast.client.sources.bvh_source import BvhSource
 from posecast.protocol import (

@@ -18,7 +18,7 @@ import pytest
 from conftest import serving
 from websockets.asyncio.client import ClientConnection, connect
 
-from posecast.client.connection import SEND_BUFFER_LIMIT, make_hello, open_session
+from posecast.client.session.connection import SEND_BUFFER_LIMIT, make_hello, open_session
 from posecast.protocol import (
     PROTOCOL_VERSION,
     AvatarBatch,

@@ -17,10 +17,10 @@ from test_server import receive_type
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed
 
+from posecast.client.bench.demo import ROOM, run_players
 from posecast.client.builtin import builtin_motion_path
-from posecast.client.demo import ROOM, run_players
+from posecast.client.session.spectator import Spectator
 from posecast.client.sources.bvh_source import tracker_recording
-from posecast.client.spectator import Spectator
 from posecast.protocol import (
     PROTOCOL_VERSION,
     AvatarBatch,
@@ -35,9 +35,10 @@ from posecast.protocol import (
     decode,
     encode,
 )
-from posecast.server.app import Session, run_server
+from posecast.server.app import Session
 from posecast.server.clock import now
 from posecast.server.limits import ServerLimits
+from posecast.server.serving import run_server
 from posecast.solver.motion import ViveRecording
 
 TIMEOUT = 10.0

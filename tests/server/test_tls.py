@@ -26,17 +26,18 @@ from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 from websockets.typing import Origin
 
+from posecast.client.bench.demo import HEADSET_HZ
 from posecast.client.builtin import builtin_motion_path
 from posecast.client.cli import main
-from posecast.client.connection import SessionError, make_hello, open_session
-from posecast.client.demo import HEADSET_HZ
-from posecast.client.player import Player, Ticker
+from posecast.client.session.connection import SessionError, make_hello, open_session
+from posecast.client.session.player import Player, Ticker
+from posecast.client.session.spectator import Spectator
 from posecast.client.sources import open_source
 from posecast.client.sources.bvh_source import BvhSource
-from posecast.client.spectator import Spectator
 from posecast.protocol import PROTOCOL_VERSION, Hello, Welcome, decode, encode
 from posecast.protocol.arrivals import ArrivalStamps
-from posecast.server.app import Session, run_server
+from posecast.server.app import Session
+from posecast.server.serving import run_server
 from posecast.server.tls import TLSConfigError, check_origin, server_tls_context
 
 OPENSSL = shutil.which("openssl")

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import REPO_ROOT
 
 from posecast.solver import calibration
 from posecast.solver.crossval import Constant, Grid, constants_set, cross_validate
@@ -17,7 +18,7 @@ from posecast.solver.evaluation import ClipResult, EvalOptions, evaluate_vive
 from posecast.solver.readers.vive import read_vive
 
 SharedData = Callable[[str], Path]
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = REPO_ROOT
 
 
 def _clip(mean: float) -> ClipResult:

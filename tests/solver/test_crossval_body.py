@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import REPO_ROOT
 
 from posecast.solver.crossval_body import SETS, configurations, leave_one_out
 from posecast.solver.evaluation import EvalOptions, evaluate_bvh, evaluate_vive
@@ -20,7 +21,7 @@ from posecast.solver.tracking.body_model import CANDIDATES, SHIPPED, BodyModel
 from posecast.solver.tracking.devices import PRESETS
 from posecast.solver.tracking.layout import S_MODEL, S_REACH, S_STEP_DIST, SHAPE_SIZE
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = REPO_ROOT
 WALK = ROOT / "client" / "assets" / "cmu_02_01_walk.bvh"
 
 

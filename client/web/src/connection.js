@@ -1,6 +1,6 @@
 // The page's connection to the server, run in a worker of its own (network.js): the
 // websocket on the page's host and port, hello as a spectator, clock sync
-// (client/connection.py's schedule: 5 pings 20 ms apart, then one a second), and
+// (client/session/connection.py's schedule: 5 pings 20 ms apart, then one a second), and
 // reconnects after a loss a reconnect can mend.
 
 import { ClockEstimator, eventTime, now } from "./clock.js";

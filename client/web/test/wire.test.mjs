@@ -1,5 +1,5 @@
 // The page's protocol, clock, skinning and device wording against Python's:
-// tests/test_browser_js.py writes what Python encodes and computes to POSECAST_JS_FIXTURE,
+// tests/client/web/test_browser_js.py writes what Python encodes and computes to POSECAST_JS_FIXTURE,
 // runs this file with node --test, then decodes in Python what this file writes to
 // POSECAST_JS_OUT.
 import assert from "node:assert/strict";
@@ -16,7 +16,7 @@ import { bindSkeleton, boneMatrices, fitAvatar, labelAnchor, pose } from "../src
 
 const path = process.env.POSECAST_JS_FIXTURE;
 const fixture = path ? JSON.parse(readFileSync(path, "utf8")) : null;
-const skip = fixture ? false : "run by pytest tests/test_browser_js.py (it writes the fixture)";
+const skip = fixture ? false : "run by pytest tests/client/web/test_browser_js.py (it writes the fixture)";
 const bytes = (hex) => Uint8Array.from(Buffer.from(hex, "hex"));
 
 test("rotations decode bit for bit as protocol/quantize.py decodes them", { skip }, () => {

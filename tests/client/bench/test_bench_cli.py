@@ -41,9 +41,12 @@ def test_bad_batch_sizes_are_refused(capsys: pytest.CaptureFixture[str]) -> None
 
 def test_bench_startup_times_fresh_processes(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["bench", "startup", "--runs", "1", "--json"]) == 0
-    doc = json.loads(capsys.readouterr().out)
+    out = capsys.readouterr()
+    doc = json.loads(out.out)
     commands = [r["command"] for r in doc["results"]]
-    assert [c.split()[1] for c in commands] == ["--version", "serve", "eval"]
+    assert [c.split()[1] for c in commands] == ["--version", "play", "serve", "eval"]
+    # progress to a pipe: whole lines, no carriage-return fragments
+    assert "\r" not in out.err and "posecast --version: run 1/1\n" in out.err
     for r in doc["results"]:
         assert r["runs"] == 1 and 0.0 < r["seconds_p50"] == r["seconds_max"]
         assert isinstance(r["compiled"], bool)

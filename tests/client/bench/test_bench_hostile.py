@@ -15,16 +15,16 @@ import pytest
 from PIL import Image
 
 from posecast.client import cli
-from posecast.client.bench_hostile import (
+from posecast.client.bench.hostile import (
     ATTACKS,
     SAME_ROOM,
     bystander_figures,
     format_hostile_table,
     measure_attack,
 )
-from posecast.client.bench_soak import bench_soak, format_soak_table, plot_soak, slope_per_minute
-from posecast.client.bench_target import TargetServer
-from posecast.client.plot import nice_ticks
+from posecast.client.bench.soak import bench_soak, format_soak_table, plot_soak, slope_per_minute
+from posecast.client.bench.target import TargetServer
+from posecast.client.measure.plot import nice_ticks
 from posecast.server.limits import ServerLimits
 
 

@@ -45,7 +45,7 @@ def test_demo_over_an_emulated_link_reports_the_display_error_of_each_mode() -> 
                 > loopback["display_error_mm"][mode]["p50"] + 30.0), mode
     # the buffer holds frames longer as it measures the link's jitter: +-10 ms each way
     # spreads arrivals over ~40 ms, and a capture interval (11 ms) comes on top (load
-    # only adds jitter; tests/test_network.py compares a calm and a jittery link)
+    # only adds jitter; tests/client/bench/test_network.py compares a calm and a jittery link)
     assert far["playout_delay_ms"]["p50"] >= 25.0
 
 
@@ -53,7 +53,7 @@ def test_a_player_the_server_disconnects_ends_the_demo_in_one_line() -> None:
     """A server that takes 10 frames a second and calls 10 more a flood: the 90 Hz
     player is closed (1008, flooding). The demo says so in one line (after the player's
     own warning), exit 1. (A network stall no longer does it: the server counts frames
-    per 1 s window and drops what a longer stall piles up, tests/test_limits.py.)"""
+    per 1 s window and drops what a longer stall piles up, tests/server/test_limits.py.)"""
     done = subprocess.run([sys.executable, "-m", "posecast.client.cli", "demo",
                            "--players", "1", "--spectators", "1", "--seconds", "8",
                            "--network", "20ms", "--limit", "frames_per_s=10",

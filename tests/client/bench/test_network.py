@@ -1,4 +1,4 @@
-"""The network emulator (client/network.py): its spec, its link model, and the proxy over
+"""The network emulator (client/bench/network.py): its spec, its link model, and the proxy over
 real sockets on 127.0.0.1: it delays by the asked amount, keeps byte order, stalls as
 asked and closes both sides when one closes; the CLI refuses a bad spec in one line."""
 
@@ -17,7 +17,7 @@ from contextlib import asynccontextmanager, contextmanager
 
 import pytest
 
-from posecast.client.network import (
+from posecast.client.bench.network import (
     LinkModel,
     NetworkProxy,
     NetworkSpec,

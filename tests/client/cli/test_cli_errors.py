@@ -26,12 +26,13 @@ from websockets.asyncio.client import connect
 from websockets.asyncio.server import ServerConnection, serve
 
 import posecast
-from posecast.client import arguments
 from posecast.client.builtin import builtin_motion_path
-from posecast.client.cli import _parser, main
+from posecast.client.cli import _parser, arguments, main
 from posecast.protocol import Error, encode
 from posecast.protocol.validation import ROOM_NAME_RULE
-from posecast.server.app import Session, _safe, run_server
+from posecast.server.app import Session
+from posecast.server.peers import safe_name
+from posecast.server.serving import run_server
 
 URL = "ws://127.0.0.1:8765"
 CLIP = f"bvh:{builtin_motion_path()}"
@@ -433,7 +434,7 @@ def test_view_says_what_it_wrote_where(server: str, egl: None, tmp_path: Path) -
 
 
 def test_log_lines_never_carry_raw_client_text() -> None:
-    line = _safe("evil\n2026-01-01 INFO forged line\x1b[31m" + "x" * 100)
+    line = safe_name("evil\n2026-01-01 INFO forged line\x1b[31m" + "x" * 100)
     assert "\n" not in line and "\x1b" not in line and len(line) < 60
 
 

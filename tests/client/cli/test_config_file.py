@@ -14,9 +14,8 @@ from pathlib import Path
 import pytest
 from test_cli_errors import WAIT, Command, _closed_port, _one_line
 
-from posecast.client import arguments
-from posecast.client.cli import _parser, _with_config, main
-from posecast.client.config_file import ConfigError, config_defaults, option_keys
+from posecast.client.cli import _parser, _with_config, arguments, main
+from posecast.client.cli.config_file import ConfigError, config_defaults, option_keys
 
 
 def _serve_parser() -> tuple[argparse.ArgumentParser, argparse.ArgumentParser]:

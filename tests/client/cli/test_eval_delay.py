@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from posecast.client.bench_prediction import bench_prediction, format_prediction_table
+from posecast.client.bench.prediction import bench_prediction, format_prediction_table
 from posecast.client.builtin import builtin_motion_path
 from posecast.client.cli import main
 from posecast.solver.evaluation import reconstruct_bvh, reconstruct_vive, score

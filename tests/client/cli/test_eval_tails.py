@@ -9,10 +9,11 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from conftest import REPO_ROOT
 
 from posecast.solver.evaluation import tracked_chain
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = REPO_ROOT
 WALK_BVH = ROOT / "client" / "assets" / "cmu_02_01_walk.bvh"
 
 

@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from posecast.client import demo
+from posecast.client.bench import demo
 from posecast.client.builtin import builtin_motion_path
 from posecast.client.cli import _parser
-from posecast.client.player import PlayerStats
+from posecast.client.session.player import PlayerStats
 from posecast.client.sources import OffsetSource, PoseSource, open_source
 
 CLIP = f"bvh:{builtin_motion_path()}"

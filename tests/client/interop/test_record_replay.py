@@ -13,10 +13,10 @@ import pytest
 from conftest import serving
 
 from posecast.client.builtin import builtin_motion_path
-from posecast.client.player import Ticker, run_player
-from posecast.client.recorder import RecordingSpectator, record_room
-from posecast.client.recording import Recording, RecordingWriter, read_recording
-from posecast.client.replay import replay_recording, split
+from posecast.client.interop.recorder import RecordingSpectator, record_room
+from posecast.client.interop.recording import Recording, RecordingWriter, read_recording
+from posecast.client.interop.replay import replay_recording, split
+from posecast.client.session.player import Ticker, run_player
 from posecast.client.sources.base import OffsetSource
 from posecast.client.sources.bvh_source import BvhSource
 from posecast.protocol import MAX_CLIENT_MESSAGE_BYTES, AvatarBatch, AvatarRoster, encode
@@ -139,8 +139,8 @@ def test_replay_of_a_bad_file_is_one_line(tmp_path: Path, argv: list[str], why: 
 def test_a_replay_is_checked_and_its_avatars_leave_with_it(tmp_path: Path) -> None:
     """Poses before their skeleton are refused in one Error; a spectator sees the replayed
     avatars arrive, and leave as soon as the replay's connection ends."""
-    from posecast.client.connection import make_hello, open_session
-    from posecast.client.spectator import Spectator
+    from posecast.client.session.connection import make_hello, open_session
+    from posecast.client.session.spectator import Spectator
     from posecast.protocol import Error
 
     async def main() -> tuple[Error, int, int]:
@@ -178,7 +178,7 @@ def test_a_replay_is_checked_and_its_avatars_leave_with_it(tmp_path: Path) -> No
 
 
 def test_a_server_with_a_secret_admits_a_replay_with_a_players_token() -> None:
-    from posecast.client.connection import SessionError, make_hello, open_session
+    from posecast.client.session.connection import SessionError, make_hello, open_session
     from posecast.server.auth import JoinTokens
 
     tokens = JoinTokens(b"s" * 32)
@@ -206,7 +206,7 @@ def test_an_exported_bvh_reads_back_as_the_recording_moved(tmp_path: Path) -> No
     joints lie within 0.5 mm of the recording's (forward kinematics of the recorded poses
     at the file's frame instants: rotations slerped, roots lerped between the two
     recorded frames around each)."""
-    from posecast.client.recording import avatar_takes
+    from posecast.client.interop.recording import avatar_takes
     from posecast.client.skeletons import skeleton_of
     from posecast.solver import rotations as R
     from posecast.solver.fk import forward_kinematics

@@ -1,4 +1,4 @@
-"""The recording file (client/recording.py): written as messages arrive, read back whole,
+"""The recording file (client/interop/recording.py): written as messages arrive, read back whole,
 and read up to the last whole record when it ends early."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from posecast.client.recording import (
+from posecast.client.interop.recording import (
     FORMAT,
     RecordingWriter,
     avatar_takes,

@@ -20,21 +20,21 @@ from pythonosc.dispatcher import Dispatcher
 from pythonosc.osc_bundle import OscBundle
 from pythonosc.osc_server import AsyncIOOSCUDPServer
 
+from posecast.client.bench.demo import HEADSET_HZ
 from posecast.client.builtin import builtin_motion_path
-from posecast.client.connection import SessionError
-from posecast.client.demo import HEADSET_HZ
-from posecast.client.player import Player
-from posecast.client.skeletons import skeleton_of
-from posecast.client.sources.bvh_source import BvhSource
-from posecast.client.sources.tracker_set import TrackerSetSource
-from posecast.client.viewer.bench import Clip
-from posecast.client.vmc import (
+from posecast.client.interop.vmc import (
     VmcError,
     check_target,
     parse_target,
     run_vmc,
     vmc_bundle,
 )
+from posecast.client.session.connection import SessionError
+from posecast.client.session.player import Player
+from posecast.client.skeletons import skeleton_of
+from posecast.client.sources.bvh_source import BvhSource
+from posecast.client.sources.tracker_set import TrackerSetSource
+from posecast.client.viewer.bench import Clip
 from posecast.server.app import Session
 from posecast.solver import rotations as R
 from posecast.solver.humanoid import HumanoidMap, humanoid_map, humanoid_pose

@@ -1,4 +1,4 @@
-"""Display error (client/display_error.py): the pose a viewer presents against the
+"""Display error (client/measure/display_error.py): the pose a viewer presents against the
 player's true pose at that instant. Here with frames that arrive a known time after
 capture, so the expected error follows from the motion; the demo's run over the real
 emulator is in test_demo_network.py."""
@@ -8,9 +8,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from posecast.client.bench.demo import _server_rig
 from posecast.client.builtin import builtin_motion_path
-from posecast.client.demo import _server_rig
-from posecast.client.display_error import (
+from posecast.client.measure.display_error import (
     Arrival,
     CaptureLog,
     DisplayError,

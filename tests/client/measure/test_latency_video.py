@@ -16,7 +16,7 @@ import pytest
 from PIL import Image
 from swing_video import FPS, HEIGHT, WIDTH, write_swing_video
 
-from posecast.client.latency_plot import AVATAR_COLOR, TRACKER_COLOR
+from posecast.client.measure.latency_plot import AVATAR_COLOR, TRACKER_COLOR
 
 WAIT = 300.0  # seconds for one run: KCF over 720 frames takes a few, more under load
 DELAYS = (3, 8, 15)

@@ -16,12 +16,12 @@ import pytest
 import uvloop
 
 from posecast.client.builtin import builtin_motion_path
-from posecast.client.connection import SessionError, open_session
-from posecast.client.latency import LatencyRecorder, format_latency_table
-from posecast.client.player import Ticker, calibrate_message, tracker_frame
+from posecast.client.measure.latency import LatencyRecorder, format_latency_table
+from posecast.client.session.connection import SessionError, open_session
+from posecast.client.session.player import Ticker, calibrate_message, tracker_frame
+from posecast.client.session.spectator import Spectator
 from posecast.client.sources.base import DeviceSample
 from posecast.client.sources.bvh_source import BvhSource
-from posecast.client.spectator import Spectator
 from posecast.protocol import (
     PROTOCOL_VERSION,
     AvatarBatch,

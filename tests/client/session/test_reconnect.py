@@ -18,13 +18,14 @@ from pathlib import Path
 
 import pytest
 
+from posecast.client.bench.redis_process import free_port
 from posecast.client.builtin import builtin_motion_path
-from posecast.client.connection import Reconnect, SessionError
-from posecast.client.player import Player
-from posecast.client.redis_process import free_port
+from posecast.client.session.connection import Reconnect, SessionError
+from posecast.client.session.player import Player
+from posecast.client.session.spectator import Spectator
 from posecast.client.sources import open_source
-from posecast.client.spectator import Spectator
-from posecast.server.app import Session, run_server
+from posecast.server.app import Session
+from posecast.server.serving import run_server
 
 TIMEOUT = 60.0  # generous: conditions are awaited, and a loaded machine starts processes slowly
 QUICK = {"first_s": 0.05, "max_s": 0.2}  # backoff for tests: the figures, not the waits

@@ -30,10 +30,10 @@ from openvr_fake import RIG_ROLES, FakeVR, rig_devices
 
 from posecast.client.builtin import builtin_motion_path
 from posecast.client.cli import main
-from posecast.client.player import Player, PlayerStats
+from posecast.client.session.player import Player, PlayerStats
+from posecast.client.session.spectator import Spectator
 from posecast.client.sources.bvh_source import tracker_recording
 from posecast.client.sources.openvr_source import OpenVRSource
-from posecast.client.spectator import Spectator
 from posecast.protocol import AvatarBatch, AvatarFrame, AvatarInfo, AvatarRoster, ClockEstimator
 from posecast.server.app import Session
 from posecast.server.metrics import Metrics

@@ -16,9 +16,9 @@ from conftest import serving
 from PIL import Image
 
 from posecast.client.builtin import builtin_motion_path
-from posecast.client.player import run_player
+from posecast.client.session.player import run_player
+from posecast.client.session.spectator import Spectator
 from posecast.client.sources.bvh_source import BvhSource
-from posecast.client.spectator import Spectator
 from posecast.client.viewer.core import ViewerStats
 from posecast.client.viewer.headless import HeadlessStats, render_spectator, run_headless_viewer
 from posecast.client.viewer.interpolation import Mode

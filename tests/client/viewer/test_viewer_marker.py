@@ -20,7 +20,7 @@ from swing_video import marker, swing
 
 from posecast.client.builtin import builtin_motion_path
 from posecast.client.cli import _parser
-from posecast.client.player import run_player
+from posecast.client.session.player import run_player
 from posecast.client.sources.bvh_source import BvhSource
 from posecast.client.viewer.bench import Clip
 from posecast.client.viewer.camera import OrbitCamera

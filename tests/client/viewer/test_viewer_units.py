@@ -8,7 +8,7 @@ import itertools
 import numpy as np
 import pytest
 
-from posecast.client.spectator import Spectator
+from posecast.client.session.spectator import Spectator
 from posecast.client.viewer.camera import OrbitCamera, look_at, mirror
 from posecast.client.viewer.lod import (
     HARDWARE_BUDGET,
