@@ -1,11 +1,14 @@
-"""`posecast serve`: the asyncio websockets server of a session.
+"""`posecast serve`'s session: every room of one server process, and its connections.
 
 One connection = one handler task. The first message must be a Hello; a player then owns
 one avatar (kept across reconnects with the resume secret of its Welcome), a spectator
-only receives. Every
-message is decoded and validated by protocol/; a bad one is answered with an Error naming
-what was wrong, counted, and the connection carries on. Spectators receive through their
-own latest-wins outbox task, so a slow one never delays the room.
+only receives. Every message is decoded and validated by protocol/; a bad one is answered
+with an Error naming what was wrong, counted, and the connection carries on. Spectators
+receive through their own latest-wins outbox task, so a slow one never delays the room.
+
+``Session`` is here with its admission and its players; its neighbours: ``spectating``
+(spectators and replays), ``cluster_rooms`` (rooms shared through Redis), ``peers``
+(who is at the other end), ``serving`` (``run_server``: the websockets server around it).
 """
 
 from __future__ import annotations

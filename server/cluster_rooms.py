@@ -3,7 +3,6 @@
 owner's avatars over, handing a room on, and mirroring what its owner publishes.
 ``Session`` inherits it; it holds no state of its own."""
 
-
 from __future__ import annotations
 
 import asyncio

@@ -2,7 +2,6 @@
 through a trusted proxy the client's; client text escaped and cut), how it ended, and the
 small socket buffers that keep a slow viewer's backlog where latest-wins can act."""
 
-
 from __future__ import annotations
 
 import contextlib

@@ -1,7 +1,6 @@
 """Serving a session: the websockets server around ``Session`` (``run_server``), its
 connections' class (arrival stamps, the accept-time drop, the cut-off after a failure),
-the sockets' buffers, and the stop that drains before it closes."""
-
+and the stop that drains before it closes."""
 
 from __future__ import annotations
 

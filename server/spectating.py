@@ -2,7 +2,6 @@
 latest-wins outbox and may report what they presented, and replays, which publish a
 recording's avatars into a room. ``Session`` inherits these handlers."""
 
-
 from __future__ import annotations
 
 import asyncio

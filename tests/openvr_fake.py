@@ -3,8 +3,8 @@
 An ``openvr.IVRSystem`` is built without ``openvr.init`` and its function table filled
 with ctypes callbacks of the table's own prototypes, so the package's real wrapper code
 (buffers, error codes, the pose array) and our role mapping and pose conversion run.
-Used by tests/client/sources/test_sources_openvr.py (the source alone) and tests/client/sources/test_openvr_live.py
-(the source streaming to a real server).
+Used by tests/client/sources/test_sources_openvr.py (the source alone) and
+tests/client/sources/test_openvr_live.py (the source streaming to a real server).
 """
 
 from __future__ import annotations

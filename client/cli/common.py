@@ -1,7 +1,6 @@
 """What the command modules share: one-line failures and usage errors, and words for a
 lost session."""
 
-
 from __future__ import annotations
 
 import argparse

@@ -1,6 +1,5 @@
 """`posecast demo`: a server, players and spectators on this machine, and their figures."""
 
-
 from __future__ import annotations
 
 import argparse

@@ -1,7 +1,6 @@
 """The `posecast` command line's parser: every command, option and help text, and the
 argument types only it uses."""
 
-
 from __future__ import annotations
 
 import argparse

@@ -1,6 +1,5 @@
 """`posecast play`: join a room as a tracked player and stream a source's poses."""
 
-
 from __future__ import annotations
 
 import argparse

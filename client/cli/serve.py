@@ -1,6 +1,5 @@
 """`posecast serve` and `posecast token`: hosting sessions, and minting join tokens."""
 
-
 from __future__ import annotations
 
 import argparse

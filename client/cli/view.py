@@ -1,6 +1,5 @@
 """`posecast view`: a spectator window (or headless frames) of a room."""
 
-
 from __future__ import annotations
 
 import argparse
