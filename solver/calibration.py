@@ -47,14 +47,16 @@ CALIBRATION_DEVICES = ("head", "left_hand", "right_hand")
 EYE_FROM_HEAD_JOINT = np.array([0.0, 0.06, 0.09])  # HMD origin sits at the eyes
 # How far a held controller's origin lies past the wrist, along the arm (metres): it sets
 # the arm length fitted to the controllers. Too long an arm keeps the model's elbow
-# straighter than the real one when reaching (docs/performance.md).
+# straighter than the real one when reaching
+# (docs/decisions/0024-calibration-fits-the-person.md).
 CONTROLLER_BEYOND_WRIST = 0.12
 
 METHODS = ("fit", "uniform")
 GRIP_TWIST = 0.0  # radians; the recordings give no clear winner
 # How far above the template's hip joints (metres, before scaling) the legs pivot in the
 # hip tracker's frame: the belt tracker turns with the lower back, not the pelvis, so the
-# pivot it sees lies above the anatomical joint (docs/performance.md).
+# pivot it sees lies above the anatomical joint
+# (docs/decisions/0024-calibration-fits-the-person.md).
 HIP_PIVOT_RAISE = 0.06
 # How far above the template's knees (metres, before scaling) the legs bend as the knee
 # trackers see it: their strap on the thigh's soft tissue turns as if the knee bent there.

@@ -52,7 +52,8 @@ class Constant:
 
 
 # Grids: the shipped value and two neighbours either side, about as far apart as the
-# recordings can tell (docs/performance.md lists each constant's reason).
+# recordings can tell (each constant's reason:
+# docs/decisions/0024-calibration-fits-the-person.md).
 CONSTANTS: tuple[Constant, ...] = (
     Constant("HIP_PIVOT_RAISE", (0.0, 0.03, 0.06, 0.09, 0.12)),
     Constant("KNEE_PIVOT_RAISE", (0.06, 0.09, 0.12, 0.15, 0.18)),

@@ -204,7 +204,8 @@ def pin_to_cores(role: str, cores: Cores) -> None:
     sending the rest of the burst (as frames from separate machines would come in); on a
     core shared with the players it could only start when their whole burst was sent.
     Spectators decode every batch the moment the server writes it; on the server's core
-    their wake-ups preempted it in the middle of its 16 writes (docs/performance.md).
+    their wake-ups preempted it in the middle of its 16 writes
+    (docs/decisions/0005-busy-polling-and-solver-helper.md).
     """
     if len(cores) < 2:
         return

@@ -83,7 +83,8 @@ BEND_LO = math.radians(10.0)
 BEND_HI = math.radians(45.0)
 # Share of its angle from the lowest point of the elbow circle by which a bent arm's
 # elbow is turned down from where a neutral wrist puts it: the Vive forearm trackers ask
-# for more, the optical mocap for about this much (docs/performance.md).
+# for more, the optical mocap for about this much
+# (docs/decisions/0026-solver-rules-where-no-tracker-looks.md).
 ELBOW_DOWN_SHARE = 0.1
 # How far from the shoulder-wrist line (share of the elbow circle's radius) the elbow a
 # neutral wrist implies must lie for its swivel to be taken whole; nearer, the swivel

@@ -2,7 +2,8 @@
 
 Each attack runs ~2 s against a real server process and must produce a well-formed report:
 these tests hold the instruments, not the server's figures (those are the commands' to
-show, on a quiet machine: docs/performance.md).
+show, on a quiet machine: docs/performance.md; why each limit:
+docs/decisions/0010-server-limits.md).
 """
 
 from __future__ import annotations
