@@ -1,6 +1,9 @@
 """Pose sources for the player: OpenVR hardware, or a recording replayed in real time.
 
 ``open_source`` turns the ``--source`` argument of ``posecast play`` into a source.
+
+Imports protocol/, solver/ and the built-in motion; no other client package (a source
+knows nothing of the session it feeds).
 """
 
 from __future__ import annotations

@@ -17,6 +17,9 @@ Modules, in the order a frame uses them:
 Entry points (for ``posecast view`` and ``posecast demo --render DIR``):
 ``run_headless_viewer``, ``render_spectator``, ``HeadlessViewerProcess``,
 ``run_window_viewer``; ``client.viewer.bench.bench_render``.
+
+Imports protocol/, solver/, client.session (its spectator), client.sources (the clips it
+renders in benches) and client.measure (latency accounting); never cli or bench.
 """
 
 from posecast.client.viewer.core import Viewer, ViewerStats
