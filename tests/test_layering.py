@@ -7,6 +7,9 @@
 - server/ never imports client/.
 - in client/, nothing imports ``cli`` and only ``cli`` imports ``bench``; no package
   imports another's underscore (private) modules or names.
+- in client/, only ``cli`` and ``bench`` (the demo embeds a server) import server/
+  (../shared/DESIGN.md); elsewhere only ``server.avatars``, the batched solver state, so
+  that the display error and the kernel warm-up solve as the server does.
 """
 
 from __future__ import annotations
@@ -27,6 +30,8 @@ IO_LIBRARIES = frozenset({
     "moderngl", "glfw", "openvr", "cv2", "PIL", "pythonosc", "prometheus_client",
 })
 SANS_IO_WEBSOCKETS = ("websockets.frames", "websockets.protocol", "websockets.exceptions")
+SERVER_IMPORTERS = frozenset({"cli", "bench"})
+SERVER_SHARED = "posecast.server.avatars"
 
 
 @dataclass(frozen=True)
@@ -62,6 +67,10 @@ def violations(package: str, module: str, source: str) -> list[str]:
             found.append(f"{where}: server/ never imports client/")
         if package.startswith("client.") and imp.module.startswith("posecast.client."):
             found += _client_rule(package.split(".")[1], where, imp)
+        if package.startswith("client.") and imp.module.startswith("posecast.server") \
+                and package.split(".")[1] not in SERVER_IMPORTERS \
+                and not imp.module.startswith(SERVER_SHARED):
+            found.append(f"{where}: in client/, only cli and bench import server/")
     return found
 
 
@@ -120,6 +129,8 @@ def test_the_packages_keep_their_layers() -> None:
      "from posecast.client.session.connection import _sync", "_sync is private"),
     ("client.viewer", "client/viewer/core.py",
      "import posecast.client.session._internals", "_internals is private"),
+    ("client.session", "client/session/player.py", "from posecast.server.app import Session",
+     "only cli and bench import server/"),
 ])
 def test_each_rule_fails_on_a_forbidden_import(package: str, module: str, source: str,
                                                words: str) -> None:
@@ -134,6 +145,8 @@ def test_each_rule_fails_on_a_forbidden_import(package: str, module: str, source
     ("client.cli", "from posecast.client.bench.demo import run_demo"),
     ("client.bench", "from posecast.client.session.player import Player"),
     ("client.session", "from posecast.client.session.connection import _anything"),
+    ("client.bench", "from posecast.server.serving import run_server"),
+    ("client.measure", "from posecast.server.avatars import AvatarSolver"),
 ])
 def test_what_the_rules_allow(package: str, source: str) -> None:
     assert violations(package, "x.py", source) == []
