@@ -30,8 +30,8 @@ from urllib.parse import urlsplit
 
 import pytest
 import yaml
+from commands import WAIT, Command, closed_port
 from conftest import REPO_ROOT
-from test_cli_errors import WAIT, Command, _closed_port
 from test_cluster import Process, running, until
 
 from posecast.client.bench.redis_process import RedisMissingError, RedisProcess, free_port
@@ -262,7 +262,7 @@ def certificate(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
 @pytest.mark.parametrize("tls", [False, True], ids=["http", "https"])
 def test_the_healthcheck_passes_for_a_serving_server_and_fails_without_one(
         tls: bool, request: pytest.FixtureRequest, tmp_path: Path) -> None:
-    port = _closed_port()
+    port = closed_port()
     config = tmp_path / "posecast.toml"
     settings = f'host = "127.0.0.1"\nport = {port}\n'
     if tls:  # a certificate for the public name: the loopback check must not mind

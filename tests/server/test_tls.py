@@ -20,8 +20,8 @@ from typing import ClassVar
 
 import numpy as np
 import pytest
+from commands import CLIP, Command, status_lines
 from conftest import SERVER_TIMEOUT, serving
-from test_cli_errors import CLIP, Command, _status
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 from websockets.typing import Origin
@@ -359,7 +359,7 @@ def test_play_and_view_over_wss_through_the_cli(certs: Certs, egl: None,
         code, out, err = Command("play", "--server", url, "--room", ROOM, "--source", CLIP,
                                  "--seconds", "1", cwd=tmp_path).finish()
         assert code == 1 and "Traceback" not in out + err
-        (line,) = _status(err)
+        (line,) = status_lines(err)
         assert line.startswith(f"posecast play: cannot reach {url}: the server's "
                                "certificate is not trusted"), err
         play = Command("play", "--server", url, "--room", ROOM, "--source", CLIP,

@@ -10,8 +10,6 @@ import argparse
 import asyncio
 import logging
 import re
-import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -22,11 +20,11 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from commands import CLIP, WAIT, Command, closed_port, status_lines
 from websockets.asyncio.client import connect
 from websockets.asyncio.server import ServerConnection, serve
 
 import posecast
-from posecast.client.builtin import builtin_motion_path
 from posecast.client.cli import _parser, arguments, main
 from posecast.protocol import Error, encode
 from posecast.protocol.validation import ROOM_NAME_RULE
@@ -35,8 +33,6 @@ from posecast.server.peers import safe_name
 from posecast.server.serving import run_server
 
 URL = "ws://127.0.0.1:8765"
-CLIP = f"bvh:{builtin_motion_path()}"
-WAIT = 120.0  # seconds for a subprocess to get somewhere (imports, kernels from cache)
 
 # (argv, the option the one line must name); "{file}" is an existing plain file
 BAD_ARGUMENTS: list[tuple[list[str], str]] = [
@@ -259,77 +255,15 @@ def refusing_server(reason: str) -> Iterator[str]:
     yield from _in_thread(make)
 
 
-class Command:
-    """A posecast subprocess; its stdout and stderr are read as they come."""
-
-    def __init__(self, *args: str, cwd: Path) -> None:
-        self.proc = subprocess.Popen([sys.executable, "-m", "posecast.client.cli", *args],
-                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                     text=True, cwd=cwd)
-        self.out: list[str] = []
-        self.err: list[str] = []
-        self._changed = threading.Condition()
-        self._readers = [threading.Thread(target=self._read, args=(stream, lines), daemon=True)
-                         for stream, lines in ((self.proc.stdout, self.out),
-                                               (self.proc.stderr, self.err))]
-        for reader in self._readers:
-            reader.start()
-
-    def _read(self, stream: Any, lines: list[str]) -> None:
-        for line in stream:
-            with self._changed:
-                lines.append(line)
-                self._changed.notify_all()
-        with self._changed:
-            self._changed.notify_all()
-
-    def wait_for(self, text: str, timeout: float = WAIT) -> str:
-        """The first stderr line with ``text``; fails if the process ends without one."""
-        deadline = time.monotonic() + timeout
-        with self._changed:
-            while True:
-                for line in self.err:
-                    if text in line:
-                        return line
-                if not self._readers[1].is_alive() or time.monotonic() > deadline:
-                    pytest.fail(f"no {text!r} on stderr; got:\n{''.join(self.err)}")
-                self._changed.wait(1.0)
-
-    def finish(self, timeout: float = WAIT) -> tuple[int, str, str]:
-        try:
-            code = self.proc.wait(timeout)
-        finally:
-            self.proc.kill()
-        for reader in self._readers:
-            reader.join(timeout)
-        return code, "".join(self.out), "".join(self.err)
-
-    def interrupt(self) -> tuple[int, str, str]:
-        self.proc.send_signal(signal.SIGINT)
-        return self.finish()
-
-
-def _status(err: str) -> list[str]:
-    """stderr without the compile notice a cold kernel cache may add."""
-    return [line for line in err.splitlines() if line.strip()
-            and not line.startswith(("posecast: compil", " "))]
-
-
-def _closed_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @pytest.mark.parametrize("command", ["play", "view", "record", "vmc"])
 def test_an_unreachable_server_is_one_line(command: str, tmp_path: Path) -> None:
-    url = f"ws://127.0.0.1:{_closed_port()}"
+    url = f"ws://127.0.0.1:{closed_port()}"
     extra = {"play": ["--source", CLIP], "record": ["--out", str(tmp_path / "r.pcrec")],
              "view": ["--headless", "--out", str(tmp_path / "png")], "vmc": []}[command]
     code, out, err = Command(command, "--server", url, "--room", "r", *extra,
                              cwd=tmp_path).finish()
     assert code == 1 and "Traceback" not in err + out
-    (line,) = _status(err)
+    (line,) = status_lines(err)
     assert line.startswith(f"posecast {command}: cannot reach {url}: connection refused"), err
 
 
@@ -339,7 +273,7 @@ def test_a_refused_join_is_one_line_with_the_servers_reason(tmp_path: Path) -> N
         code, out, err = Command("play", "--server", url, "--room", "r", "--source", CLIP,
                                  cwd=tmp_path).finish()
     assert code == 1 and "Traceback" not in err + out
-    (line,) = _status(err)
+    (line,) = status_lines(err)
     assert line.startswith(f"posecast play: {url}: ") and reason in line, err
 
 

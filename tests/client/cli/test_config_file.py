@@ -12,7 +12,8 @@ import sys
 from pathlib import Path
 
 import pytest
-from test_cli_errors import WAIT, Command, _closed_port, _one_line
+from commands import WAIT, Command, closed_port
+from test_cli_errors import _one_line
 
 from posecast.client.cli import _parser, _with_config, arguments, main
 from posecast.client.cli.config_file import ConfigError, config_defaults, option_keys
@@ -154,7 +155,7 @@ def test_config_defaults_is_pure_and_says_which_key() -> None:
 # --------------------------------------------------------------------------- real server
 def test_the_real_server_listens_where_the_file_says_unless_a_flag_says_otherwise(
         tmp_path: Path) -> None:
-    from_file, from_flag = _closed_port(), _closed_port()
+    from_file, from_flag = closed_port(), closed_port()
     config = tmp_path / "posecast.toml"
     config.write_text(f'host = "127.0.0.1"\nport = {from_file}\nsolver = "dls"\n'
                       "[limits]\nrooms = 2\n")
