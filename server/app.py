@@ -235,7 +235,7 @@ class Session(ClusterRooms, SpectatingConnections):
         is: no websocket, no handler, no close handshake. Through a trusted proxy, the
         client is the one its X-Forwarded-For names (kept on the connection)."""
         peer = connection.remote_address
-        if isinstance(peer, tuple) and peer and str(peer[0]) in self.trusted_proxies:
+        if self._trusted_proxy(peer):
             client = forwarded_client(request.headers.get_all("X-Forwarded-For"))
             if client is not None:
                 connection.forwarded_for = client  # type: ignore[attr-defined]
@@ -252,11 +252,15 @@ class Session(ClusterRooms, SpectatingConnections):
                      "text/plain; charset=utf-8", http.HTTPStatus.TOO_MANY_REQUESTS,
                      headers=(("Retry-After", str(wait)),))
 
+    def _trusted_proxy(self, peer: object) -> bool:
+        """The peer (host, port) is a reverse proxy named by ``trusted_proxies``."""
+        return isinstance(peer, tuple) and bool(peer) and str(peer[0]) in self.trusted_proxies
+
     def accepts(self, peername: object) -> bool:
         """A TCP connection as it is accepted, before websockets reads a byte: False
         (drop it, no reply) when its address keeps connecting with its join budget spent
         (``DROP_AFTER_REFUSALS``)."""
-        if isinstance(peername, tuple) and peername and str(peername[0]) in self.trusted_proxies:
+        if self._trusted_proxy(peername):
             return True  # its clients are told apart by their X-Forwarded-For, later
         joins = self._address_joins.peek(address_key(peername))
         if joins is None or joins.refused < DROP_AFTER_REFUSALS or joins.would_take(now()):

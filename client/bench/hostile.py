@@ -43,6 +43,7 @@ from posecast.protocol import (
     encode,
 )
 from posecast.protocol.codec import encode_tracker_frame
+from posecast.server.limits import ServerLimits
 
 ATTACKS = ("calibrate-flood", "bad-messages", "big-frames", "poison-time",
            "poison-calibration", "hello-strings", "reconnect-calibrate", "join-leave")
@@ -545,8 +546,6 @@ def _server_figures(before: dict[str, Any], after: dict[str, Any], cpu_s: float,
                     seconds: float) -> dict[str, float]:
     """What the server did over the window: its CPU (% of one core), calibrations
     taken (per second after the address's burst: ServerLimits), internal errors."""
-    from posecast.server.limits import ServerLimits
-
     limits = ServerLimits()
     taken = int(after.get("calibrations", 0)) - int(before.get("calibrations", 0))
     beyond_burst = max(0, taken - limits.address_calibration_burst)
@@ -578,8 +577,6 @@ def _targets(attack: str, figures: dict[str, float], growth: float,
             targets.append(target("cpu_pct", server["cpu_pct"], f"< {TARGET_CPU_PCT:g}",
                                   server["cpu_pct"] < TARGET_CPU_PCT))
         if attack == "reconnect-calibrate":
-            from posecast.server.limits import ServerLimits
-
             per_s = ServerLimits().address_calibrations_per_s
             value = server["calibrations_per_s_after_burst"]
             targets.append(target("calibrations_per_s_after_burst", value, f"<= {per_s:g}",
