@@ -309,6 +309,9 @@ class Calibrate(_DevicePoses):
 # --------------------------------------------------------------------------- viewer reports
 # rows of one ViewerReport: 3 x 8 bytes each, so 128 fill 3 KiB, within a client message
 MAX_REPORT_ROWS = 128
+# a headset frame's poses-to-submit beyond this is no frame a person saw (and no value
+# for a histogram of milliseconds)
+MAX_POSE_TO_SUBMIT_S = 1.0
 
 
 class ViewerReport(Model):
@@ -320,30 +323,60 @@ class ViewerReport(Model):
     offset for both, so that presented never precedes received). Added in protocol
     version 1: a server that predates it answers ``unknown_type``, and a viewer then
     stops reporting.
+
+    ``pose_to_submit`` (a headset viewer's, ``play --hmd``): seconds from the poses a
+    headset frame was drawn with to its submission to the compositor, one per frame, on
+    the viewer's own clock (no clock offset in it). A report may carry only these, with
+    no avatar-frame rows. A server that predates the field refuses the report (unknown
+    field), and the viewer then stops reporting.
     """
 
     type: Literal["viewer_report"] = "viewer_report"
-    t_capture: Array  # (n,) float64 on the wire, 1 <= n <= MAX_REPORT_ROWS
+    t_capture: Array  # (n,) float64 on the wire, 0 <= n <= MAX_REPORT_ROWS
     t_received: Array  # (n,)
     t_presented: Array  # (n,)
+    pose_to_submit: Array | None = None  # (m,) seconds, 0 <= each <= MAX_POSE_TO_SUBMIT_S
 
     @field_validator("t_capture", "t_received", "t_presented", mode="plain")
     @classmethod
     def _times(cls, value: Any, info: ValidationInfo) -> Array:
         column = time_column(value, is_wire(info))
-        if not 1 <= column.shape[0] <= MAX_REPORT_ROWS:
-            raise ValueError(f"{column.shape[0]} rows; 1 to {MAX_REPORT_ROWS} allowed")
+        if column.shape[0] > MAX_REPORT_ROWS:
+            raise ValueError(f"{column.shape[0]} rows; at most {MAX_REPORT_ROWS} allowed")
         first = info.data.get("t_capture")
         if first is not None and column.shape[0] != first.shape[0]:
             raise ValueError(f"{column.shape[0]} rows for {first.shape[0]} t_capture rows")
+        return readonly(column)
+
+    @field_validator("pose_to_submit", mode="plain")
+    @classmethod
+    def _durations(cls, value: Any, info: ValidationInfo) -> Array | None:
+        if value is None:
+            return None
+        column = time_column(value, is_wire(info))
+        if column.shape[0] > MAX_REPORT_ROWS:
+            raise ValueError(f"{column.shape[0]} rows; at most {MAX_REPORT_ROWS} allowed")
+        off = np.flatnonzero(~((column >= 0.0) & (column <= MAX_POSE_TO_SUBMIT_S)))
+        if off.size:
+            row = int(off[0])
+            raise ValueError(f"row {row}: {float(column[row])!r} s is not within 0 to "
+                             f"{MAX_POSE_TO_SUBMIT_S:g} s")
         return readonly(column)
 
     @field_serializer("t_capture", "t_received", "t_presented")
     def _times_wire(self, times: Array) -> bytes:
         return np.ascontiguousarray(times, dtype="<f8").tobytes()
 
+    @field_serializer("pose_to_submit")
+    def _durations_wire(self, times: Array | None) -> bytes | None:
+        return None if times is None else np.ascontiguousarray(times, dtype="<f8").tobytes()
+
     @model_validator(mode="after")
     def _presented_after_received(self) -> ViewerReport:
+        if self.t_capture.shape[0] == 0 and (self.pose_to_submit is None
+                                             or self.pose_to_submit.shape[0] == 0):
+            raise ValueError("an empty report: at least one row of avatar-frames or of "
+                             "pose_to_submit")
         early = np.flatnonzero(self.t_presented < self.t_received)
         if early.size:
             row = int(early[0])

@@ -24,6 +24,9 @@ SERVER_STAGES: tuple[str, ...] = ("capture_to_server", "solve", "server")
 # ``protocol.batch.stage_latencies`` names them: capture to the batch's arrival at the
 # viewer's process, and capture to the frame on its screen
 VIEWER_STAGES: tuple[str, ...] = ("capture_to_spectator", "capture_to_presented")
+# a headset viewer's (``play --hmd``): from the poses a frame was drawn with to its
+# submission to the compositor, on the viewer's own clock
+HEADSET_STAGES: tuple[str, ...] = ("pose_to_submit",)
 
 
 class StageHistograms:

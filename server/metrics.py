@@ -7,7 +7,13 @@ from collections import Counter
 from dataclasses import dataclass, field
 
 from posecast.protocol.roles import roles_of_bits
-from posecast.server.latency import RelayLatency, ServerLatency, ViewerLatency
+from posecast.server.latency import (
+    HEADSET_STAGES,
+    RelayLatency,
+    ServerLatency,
+    StageHistograms,
+    ViewerLatency,
+)
 
 
 @dataclass
@@ -47,6 +53,8 @@ class Metrics:
     # the spectators' own stages, from their reports (ViewerReport); read by /metrics
     viewer_reports: int = 0  # reports taken (a refused one counts in ``rejected``)
     viewer_latency: ViewerLatency = field(default_factory=ViewerLatency)
+    headset_latency: StageHistograms = field(
+        default_factory=lambda: StageHistograms(HEADSET_STAGES))
     relay_latency: RelayLatency = field(default_factory=RelayLatency)
     # an avatar's devices missing from its player's frames (never an error: the body
     # carries on), by role: tracker frames that lacked it, and losses (tracked in the

@@ -129,10 +129,12 @@ class SessionCollector(Collector):
             "capture_to_server (captured to its bytes' arrival), solve (arrival to "
             "solved), server (arrival to handed to the sockets), for every frame solved; "
             "capture_to_spectator (to its arrival at a viewer) and capture_to_presented "
-            "(to a viewer's screen), for the frames viewers report; relay (another process "
+            "(to a viewer's screen), for the frames viewers report; pose_to_submit (a "
+            "headset viewer's poses to its frame's submission, on its own clock); relay "
+            "(another process "
             "published a batch or roster to this one receiving it through Redis).",
             labels=["stage"])
-        for histograms in (m.latency, m.viewer_latency, m.relay_latency):
+        for histograms in (m.latency, m.viewer_latency, m.headset_latency, m.relay_latency):
             for stage in histograms.stages:
                 buckets, total = histograms.cumulative(stage)
                 latency.add_metric([stage], buckets, total)

@@ -177,6 +177,8 @@ class SpectatingConnections:
         skew = self.limits.capture_skew_s
         for name in ("t_capture", "t_received", "t_presented"):
             times: np.ndarray = getattr(report, name)
+            if not times.size:
+                continue
             off = np.flatnonzero(~(np.abs(times - t_received) <= skew))
             if off.size:
                 row = int(off[0])
@@ -185,6 +187,9 @@ class SpectatingConnections:
                     f"{float(times[row]) - t_received:+.3g} s off the server clock at its "
                     f"arrival; more than capture_skew_s ({skew:g} s): is the clock synced?"))
         self.metrics.viewer_reports += 1
-        self.metrics.viewer_latency.report(report.t_capture, report.t_received,
-                                           report.t_presented)
+        if report.size:
+            self.metrics.viewer_latency.report(report.t_capture, report.t_received,
+                                               report.t_presented)
+        if report.pose_to_submit is not None and report.pose_to_submit.size:
+            self.metrics.headset_latency.observe(report.pose_to_submit[None, :])
 

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO, TypeVar
 
 if TYPE_CHECKING:  # play must not load the viewer's GL modules
+    from posecast.client.headset.view import HeadsetStats
     from posecast.client.session.player import Player, PlayerStats
     from posecast.client.session.spectator import Spectator, SpectatorStats
     from posecast.client.viewer.core import ViewerStats
@@ -106,6 +107,18 @@ def player_summary(stats: PlayerStats) -> str:
             f" from {len(stats.devices)} devices ({', '.join(stats.devices)})"
             + (f"; lost: {lost}" if lost else "; no device lost")
             + (f"; server errors: {dict(stats.errors)}" if stats.errors else ""))
+
+
+def headset_summary(stats: HeadsetStats, out_dir: Path | None) -> str:
+    """One line on what the headset showed, with its poses-to-submit latency."""
+    summary = stats.latency.summary().get("pose_to_submit")
+    timing = (f"; pose to submit p50 {summary['p50']:.1f} ms, p99 "
+              f"{summary['p99']:.1f} ms" if summary else "")
+    errors = (f"; compositor refused {sum(stats.errors.values())} calls "
+              f"({', '.join(sorted(stats.errors))})" if stats.errors else "")
+    files = f"; written to {out_dir}/" if out_dir is not None and stats.frames else ""
+    return (f"headset: {stats.frames} frames, {stats.width}x{stats.height} an eye"
+            f"{timing}{errors}{files}")
 
 
 # --------------------------------------------------------------------------- view

@@ -284,6 +284,23 @@ def _parser() -> argparse.ArgumentParser:
                     help="seconds to get into the T-pose before calibrating "
                          "(default: 3 for openvr, 0 for recordings); press Enter to "
                          "recalibrate while playing")
+    hmd = pl.add_mutually_exclusive_group()
+    hmd.add_argument("--hmd", action="store_true",
+                     help="see the room in your headset (SteamVR): your own body, solved "
+                          "here from the compositor's poses, in first person and in a "
+                          "mirror, and everyone else in the room")
+    hmd.add_argument("--hmd-out", type=arg.out_dir, default=None, metavar="DIR",
+                     help="without SteamVR: what both eyes would see, side by side, as PNG "
+                          "files in DIR (made if missing); the source's head stands in "
+                          "for the headset")
+    pl.add_argument("--hmd-frames", type=arg.positive_int, default=None, metavar="N",
+                    help="with --hmd or --hmd-out: stop after N headset frames")
+    pl.add_argument("--hmd-scale", type=arg.positive_float, default=1.0, metavar="F",
+                    help="with --hmd-out: each eye at F times a Vive's recommended "
+                         "1512x1680 (default 1)")
+    pl.add_argument("--mirror", type=arg.non_negative_float, default=2.0, metavar="M",
+                    help="with --hmd or --hmd-out: a mirror M metres before where you "
+                         "calibrate (default 2; 0: none)")
 
     vw = sub.add_parser("view", help="watch a room: skinned avatars in a window, or to PNGs",
                         description="Watch a room: every avatar skinned, in a window or "

@@ -218,6 +218,10 @@ class Player:
         self.session: Session | None = None
         # with a policy, a lost session is opened again and the avatar resumed
         self.reconnect = reconnect
+        # a headset on this machine (client.headset) sees each sample read and each
+        # T-pose sent, on this thread, as they go out
+        self.on_sample: Callable[[DeviceSample], None] | None = None
+        self.on_calibration: Callable[[DeviceSample], None] | None = None
         self._seq = 0
         self._recalibrate = False
         self._t_first: float | None = None  # the first frame's capture: ``seconds`` count
@@ -335,9 +339,12 @@ class Player:
                 if session.send_now(encode(message)):  # else: next slot
                     self._recalibrate = False
                     self.stats.calibrations_sent += 1
+                    self._calibrated(message)
         sample = self.source.read()
         if sample is None:
             return None
+        if self.on_sample is not None:
+            self.on_sample(sample)
         if session.send_now(encode_tracker_frame(
                 self._seq, sample.roles, sample.poses, sample.t_capture,
                 session.clock.offset)):
@@ -354,6 +361,11 @@ class Player:
         await session.send(message)
         self.stats.calibrations_sent += 1
         self.stats.count_devices(message.roles)
+        self._calibrated(message)
+
+    def _calibrated(self, message: Calibrate) -> None:
+        if self.on_calibration is not None:
+            self.on_calibration(DeviceSample(message.t_capture, message.roles, message.poses))
 
     async def _read_loop(self, session: Session) -> None:
         """Consume what the server sends a player: Pongs (in receive), Errors."""

@@ -128,11 +128,16 @@ class OpenVRSource:
     """Poses of the player's SteamVR devices; see the module docstring."""
 
     def __init__(self, config_path: Path | None = None, system: openvr.IVRSystem | None = None,
-                 calibration_timeout: float = CALIBRATION_TIMEOUT) -> None:
+                 calibration_timeout: float = CALIBRATION_TIMEOUT,
+                 application: int = openvr.VRApplication_Background) -> None:
+        """``system``: an IVRSystem already open (tests fill one's function table);
+        else OpenVR is opened as ``application``: a background app, or a scene app
+        when the same process draws into the headset (``play --hmd``: one init per
+        process, and a scene app's IVRSystem reads poses as well)."""
         self.serial_roles = load_serial_roles(config_path) if config_path is not None else {}
         self.calibration_timeout = calibration_timeout
         self._owns_runtime = system is None
-        self.system = _init_openvr() if system is None else system
+        self.system = _init_openvr(application) if system is None else system
         self._poses = (openvr.TrackedDevicePose_t * openvr.k_unMaxTrackedDeviceCount)()
         self._view = np.frombuffer(self._poses, dtype=POSE_DTYPE)  # shares the ctypes memory
         self._event = openvr.VREvent_t()
@@ -219,8 +224,13 @@ class OpenVRSource:
             self.rescan()
         self.system.getDeviceToAbsoluteTrackingPose(openvr.TrackingUniverseStanding, 0.0,
                                                     self._poses)
-        t = now()  # the capture instant: right after the poses were taken
-        sel = self._view[self._indices]
+        return self.sample_of(self._view, now())  # the capture: right after the read
+
+    def sample_of(self, poses: NDArray[np.void], t: float) -> DeviceSample:
+        """The sample of a pose array (``POSE_DTYPE`` over k_unMaxTrackedDeviceCount
+        TrackedDevicePose_t, as read here or as the compositor's WaitGetPoses hands it to
+        a headset's frame) with this source's roles, captured at ``t``."""
+        sel = poses[self._indices]
         valid = (sel["valid"] != 0) & (sel["connected"] != 0)
         running = valid & (sel["result"] == openvr.TrackingResult_Running_OK)
         self._last_ok[self._indices[running]] = t
@@ -260,6 +270,12 @@ class OpenVRSource:
             openvr.shutdown()
 
 
+def open_scene_source(config_path: Path | None = None) -> OpenVRSource:
+    """The player's devices through OpenVR opened as a scene application, whose
+    IVRSystem also serves the compositor (``play --hmd``); SourceError without SteamVR."""
+    return OpenVRSource(config_path, application=openvr.VRApplication_Scene)
+
+
 @contextlib.contextmanager
 def _native_stderr_quiet() -> Iterator[None]:
     """The native OpenVR library prints its own diagnostics to file descriptor 2 (e.g.
@@ -278,11 +294,12 @@ def _native_stderr_quiet() -> Iterator[None]:
         os.close(saved)
 
 
-def _init_openvr() -> openvr.IVRSystem:
-    """openvr.init as a background app (it never starts SteamVR itself), or SourceError."""
+def _init_openvr(application: int = openvr.VRApplication_Background) -> openvr.IVRSystem:
+    """openvr.init as ``application`` (neither a background nor a scene app starts
+    SteamVR itself), or SourceError."""
     try:
         with _native_stderr_quiet():
-            return openvr.init(openvr.VRApplication_Background)
+            return openvr.init(application)
     except openvr.error_code.OpenVRError as err:
         code = getattr(err, "error_value", None)
         name = (openvr.getVRInitErrorAsSymbol(code) if code is not None
@@ -293,5 +310,8 @@ def _init_openvr() -> openvr.IVRSystem:
             what = "no VR headset found"
         else:
             what = "SteamVR is not running"
-        raise SourceError(f"{what} (OpenVR init failed: {name}): start SteamVR, or replay "
-                          f"a recording with --source vive:FILE") from None
+        instead = ("see the view without it with --hmd-out DIR"
+                   if application == openvr.VRApplication_Scene
+                   else "replay a recording with --source vive:FILE")
+        raise SourceError(f"{what} (OpenVR init failed: {name}): start SteamVR, or "
+                          f"{instead}") from None

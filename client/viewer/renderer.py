@@ -42,6 +42,7 @@ PALETTE: tuple[tuple[float, float, float], ...] = (
     (0.95, 0.80, 0.30), (0.35, 0.85, 0.80), (0.65, 0.50, 0.90), (0.90, 0.55, 0.55),
 )
 BACKGROUND = (0.11, 0.12, 0.15)
+GL_CLIP_DISTANCE0 = 0x3000  # not among moderngl's flags: enabled with enable_direct
 LABEL_ABOVE_HEAD_M = 0.12
 
 _SKIN_GLSL = """
@@ -71,6 +72,7 @@ SKIN
 uniform mat4 u_view_projection;
 uniform vec3 u_color;
 uniform vec3 u_eye;
+uniform vec4 u_clip;  // a world plane: the half-space where dot(u_clip, p) < 0 is cut
 out vec3 v_color;
 const vec3 LIGHT = vec3(0.3578, 0.8050, 0.4472);  // normalize(0.4, 0.9, 0.5)
 void main() {
@@ -84,6 +86,7 @@ void main() {
     float sky = 0.5 + 0.5 * n.y;  // hemisphere ambient: brighter from above
     float rim = pow(1.0 - max(dot(n, to_eye), 0.0), 3.0);
     v_color = u_color * (0.25 + 0.25 * sky + 0.6 * key) + 0.15 * rim;
+    gl_ClipDistance[0] = dot(u_clip, world);
     gl_Position = u_view_projection * world;
 }
 """
@@ -111,11 +114,13 @@ _GRID_VS = """
 in vec3 in_position;
 in vec3 in_color;
 uniform mat4 u_view_projection;
+uniform vec4 u_clip;
 out vec3 v_color;
 out vec3 v_world;
 void main() {
     v_color = in_color;
     v_world = in_position;
+    gl_ClipDistance[0] = dot(u_clip, vec4(in_position, 1.0));
     gl_Position = u_view_projection * vec4(in_position, 1.0);
 }
 """
@@ -294,11 +299,10 @@ class Renderer:
         matrices, gq, gp = pose_matrices([d.avatar for d in draws], self.mesh,
                                          [d.rotations for d in draws],
                                          [d.root for d in draws])
-        for b, d in enumerate(draws):
-            if d.hide_head:  # collapse the head onto its joint: M = [0 | p] @ IB
-                matrices[b, self._head_joints, :3, :3] = 0.0
-                matrices[b, self._head_joints, :3, 3] = gp[b, self._head_joints]
-        return PosedScene(draws, matrices, gq, gp)
+        posed = PosedScene(draws, matrices, gq, gp)
+        hidden = [b for b, d in enumerate(draws) if d.hide_head]
+        # the head collapsed onto its joint: M = [0 | p] @ IB
+        return self.without_heads(posed, hidden) if hidden else posed
 
     def head_tops(self, scene: PosedScene) -> Array:
         """Where each avatar's name label goes: a little above the crown, (B, 3)."""
@@ -309,17 +313,19 @@ class Renderer:
         top[:, 1] += LABEL_ABOVE_HEAD_M
         return top
 
-    def _choose_levels(self, scene: PosedScene, camera: Camera) -> list[int]:
+    def _choose_levels(self, scene: PosedScene, camera: Camera,
+                       size: tuple[int, int]) -> list[int]:
         """A level of detail per avatar (-1: outside the view, not drawn)."""
         if not scene.draws:
             return []
+        width, height = size
         top = self.head_tops(scene)
         bottom = top.copy()
         bottom[:, 1] = scene.global_pos[:, :, 1].min(axis=1)  # the lowest joint's height
-        pt, front_t = camera.project(top, self.width, self.height)
-        pb, front_b = camera.project(bottom, self.width, self.height)
+        pt, front_t = camera.project(top, width, height)
+        pb, front_b = camera.project(bottom, width, height)
         # an avatar partly behind the camera is as close as can be: the finest level
-        height = np.where(front_t & front_b, np.linalg.norm(pt - pb, axis=1), 1e9)
+        height_px = np.where(front_t & front_b, np.linalg.norm(pt - pb, axis=1), 1e9)
         # a sphere around the body's joints: not drawn when wholly outside the view
         lo, hi = scene.global_pos.min(axis=1), scene.global_pos.max(axis=1)
         visible = camera.spheres_visible(0.5 * (lo + hi),
@@ -327,21 +333,32 @@ class Renderer:
         shown = np.nonzero(visible)[0]
         levels = [-1] * len(scene)
         if self.triangle_budget > 0:  # the budget is shared by the avatars in view
-            chosen = choose_levels(height[shown].tolist(), self._lods, self.triangle_budget)
+            chosen = choose_levels(height_px[shown].tolist(), self._lods,
+                                   self.triangle_budget)
         else:
             chosen = [0] * len(shown)
         for b, k in zip(shown, chosen, strict=True):
             levels[int(b)] = k
         return levels
 
-    def render(self, scene: PosedScene, camera: Camera, grid: bool = True) -> None:
-        """Draw the scene into ``target`` (does not wait for the GPU)."""
+    def render(self, scene: PosedScene, camera: Camera, grid: bool = True, *,
+               target: moderngl.Framebuffer | None = None,
+               size: tuple[int, int] | None = None,
+               clip_plane: Array | None = None) -> None:
+        """Draw the scene into ``target`` (default: the renderer's own, at its size; does
+        not wait for the GPU). ``clip_plane`` (a, b, c, d): cut everything where
+        a x + b y + c z + d < 0 (a mirror's reflected pass cuts what is behind it)."""
         ctx = self.ctx
-        self.target.use()
-        ctx.viewport = (0, 0, self.width, self.height)
+        width, height = size or (self.width, self.height)
+        (target or self.target).use()
+        ctx.viewport = (0, 0, width, height)
         ctx.clear(*BACKGROUND, 1.0, depth=1.0)
         ctx.enable(moderngl.DEPTH_TEST)
         ctx.enable(moderngl.CULL_FACE)
+        clip = (0.0, 0.0, 0.0, 1.0) if clip_plane is None else tuple(
+            float(x) for x in clip_plane)
+        if clip_plane is not None:
+            ctx.enable_direct(GL_CLIP_DISTANCE0)
         ctx.front_face = "cw" if camera.mirrored else "ccw"
         vp = _gl_matrix(camera.view_projection)
         eye = tuple(float(x) for x in camera.eye)
@@ -349,11 +366,13 @@ class Renderer:
             uniform(self._grid_prog, "u_view_projection").write(vp)
             uniform(self._grid_prog, "u_eye").value = eye
             uniform(self._grid_prog, "u_background").value = BACKGROUND
+            uniform(self._grid_prog, "u_clip").value = clip
             self._grid.render(moderngl.LINES, vertices=self._grid_vertices)
         prog = self._avatar_prog
         uniform(prog, "u_view_projection").write(vp)
         uniform(prog, "u_eye").value = eye
-        scene.lod = self._choose_levels(scene, camera)
+        uniform(prog, "u_clip").value = clip
+        scene.lod = self._choose_levels(scene, camera, (width, height))
         joints = uniform(prog, "u_joints")
         color = uniform(prog, "u_color")
         for b, d in enumerate(scene.draws):
@@ -362,6 +381,19 @@ class Renderer:
             joints.write(_gl_matrices(scene.matrices[b]))
             color.value = d.color or avatar_color(d.avatar.info.avatar_id)
             self._levels[scene.lod[b]].render(moderngl.TRIANGLES)
+        if clip_plane is not None:
+            ctx.disable_direct(GL_CLIP_DISTANCE0)
+        ctx.front_face = "ccw"
+
+    def without_heads(self, scene: PosedScene, hidden: Sequence[int]) -> PosedScene:
+        """A copy of ``scene`` whose avatars at indices ``hidden`` have no head (the
+        first-person camera sits inside it); ``scene`` itself is unchanged, for a mirror
+        that shows the head."""
+        matrices = scene.matrices.copy()
+        for b in hidden:
+            matrices[b, self._head_joints, :3, :3] = 0.0
+            matrices[b, self._head_joints, :3, 3] = scene.global_pos[b, self._head_joints]
+        return PosedScene(scene.draws, matrices, scene.global_rot, scene.global_pos)
 
     def warm_up(self) -> None:
         """Draw every level of detail once and wait: the driver compiles its shader

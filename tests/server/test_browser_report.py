@@ -53,14 +53,28 @@ def f8(*values: float) -> bytes:
 def test_a_report_round_trips_within_a_client_message() -> None:
     small = report([1.0, 2.0, 3.0])
     assert decode_client(encode(small)) == small
+    # a headset's: its frames' poses-to-submit, with or without avatar-frame rows
+    headset = ViewerReport(t_capture=[], t_received=[], t_presented=[],
+                           pose_to_submit=[0.004, 0.011])
+    back = decode_client(encode(headset))
+    assert back == headset and back.pose_to_submit is not None
+    assert back.pose_to_submit.tolist() == [0.004, 0.011]
     full = report(list(np.linspace(0.0, 1.0, MAX_REPORT_ROWS)))
     assert len(encode(full)) <= 4096 and decode_client(encode(full)) == full
 
 
 @pytest.mark.parametrize(("data", "words"), [
-    (wire(t_capture=b"", t_received=b"", t_presented=b""), "0 rows; 1 to 128"),
+    (wire(t_capture=b"", t_received=b"", t_presented=b""), "an empty report"),
+    (wire(t_capture=b"", t_received=b"", t_presented=b"", pose_to_submit=b""),
+     "an empty report"),
     (wire(t_capture=f8(*range(129)), t_received=f8(*range(129)),
-          t_presented=f8(*range(129))), "129 rows; 1 to 128 allowed"),
+          t_presented=f8(*range(129))), "129 rows; at most 128 allowed"),
+    (wire(t_capture=b"", t_received=b"", t_presented=b"", pose_to_submit=f8(0.01, -0.001)),
+     "row 1: -0.001 s is not within 0 to 1 s"),
+    (wire(t_capture=b"", t_received=b"", t_presented=b"", pose_to_submit=f8(2.0)),
+     "row 0: 2.0 s is not within"),
+    (wire(t_capture=b"", t_received=b"", t_presented=b"", pose_to_submit=f8(*[0.01] * 129)),
+     "pose_to_submit: 129 rows; at most 128"),
     (wire(t_capture=f8(1.0, 2.0), t_received=f8(1.0), t_presented=f8(1.0)),
      "1 rows for 2 t_capture rows"),
     (wire(t_capture=f8(float("nan")), t_received=f8(1.0), t_presented=f8(1.0)),
