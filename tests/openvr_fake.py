@@ -10,6 +10,7 @@ tests/client/sources/test_openvr_live.py (the source streaming to a real server)
 from __future__ import annotations
 
 import ctypes
+import platform
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -100,6 +101,10 @@ class FakeVR:
         self.reads += 1
         if self.on_read is not None:
             self.on_read(n)
+        self.write_poses(poses, count)
+
+    def write_poses(self, poses: Any, count: int) -> None:
+        """The devices' poses into a caller's TrackedDevicePose_t array."""
         for i in range(count):
             pose = poses[i]  # a view into the caller's array
             dev = self.devices.get(i)
@@ -185,3 +190,123 @@ def rig_devices() -> list[Device]:
 RIG_ROLES = {"head": 0, "hip": 3, "left_hand": 1, "right_hand": 2, "left_forearm": 8,
              "right_forearm": 9, "left_foot": 4, "right_foot": 5, "left_knee": 6,
              "right_knee": 7, "chest": 11}
+
+
+# ------------------------------------------------------------------------- compositor
+# IVRSystem's GetProjectionMatrix and GetEyeToHeadTransform return a 64- and a 48-byte
+# struct by value, which a ctypes callback cannot. On x86-64 (System V and Windows alike)
+# such a struct is returned through a hidden pointer the caller passes first, and the
+# function returns that pointer: a callback of that C signature, cast to the table's
+# type, answers the real wrapper's call exactly as the runtime would.
+STRUCT_RETURN = platform.machine().lower() in ("x86_64", "amd64")
+PROJECTION_PROTO = openvr.OPENVR_FNTABLE_CALLTYPE(
+    ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_float, ctypes.c_float)
+EYE_TO_HEAD_PROTO = openvr.OPENVR_FNTABLE_CALLTYPE(
+    ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint32)
+COMPOSITOR_TYPES = dict(openvr.IVRCompositor_FnTable._fields_)
+# a Vive's left-eye half-angle tangents (left, right, down, up) as GetProjectionRaw gives
+# them, its recommended size and its default IPD (the headset tests' "real headset")
+VIVE_TANGENTS = (1.3962, 1.2475, 1.4688, 1.4654)
+VIVE_SIZE = (1512, 1680)
+VIVE_IPD = 0.063
+
+
+def d3d_projection(left: float, right: float, down: float, up: float, near: float,
+                   far: float) -> NDArray[np.float64]:
+    """The matrix SteamVR's GetProjectionMatrix returns for these tangents: openvr's own
+    ComposeProjection, depth to 0..1 (Direct3D's convention)."""
+    m = np.zeros((4, 4))
+    m[0, 0] = 2.0 / (left + right)
+    m[0, 2] = (right - left) / (left + right)
+    m[1, 1] = 2.0 / (up + down)
+    m[1, 2] = (up - down) / (up + down)
+    m[2, 2] = -far / (far - near)
+    m[2, 3] = -far * near / (far - near)
+    m[3, 2] = -1.0
+    return m
+
+
+@dataclass
+class Submitted:
+    eye: int
+    texture: int  # the GL texture name
+    kind: int  # ETextureType
+    bounds: tuple[float, float, float, float]
+    wait: int  # the WaitGetPoses it follows (0, 1, ...)
+
+
+class FakeCompositor:
+    """A headset: ``vr`` (a FakeVR, whose system gains the render size, projections and
+    eye transforms of a Vive) and an IVRCompositor whose WaitGetPoses hands out
+    ``vr``'s devices (``on_wait(n)`` first moves them, as ``on_read`` does) and whose
+    Submit records each texture and calls ``on_submit(submitted)`` on the submitting
+    thread, its GL context current (read the texture back there)."""
+
+    def __init__(self, vr: FakeVR, size: tuple[int, int] = VIVE_SIZE,
+                 tangents: tuple[float, float, float, float] = VIVE_TANGENTS,
+                 ipd: float = VIVE_IPD) -> None:
+        self.vr = vr
+        self.size = size
+        self.tangents = tangents
+        self.ipd = ipd
+        self.waits = 0
+        self.submitted: list[Submitted] = []
+        self.on_wait: Callable[[int], None] | None = None
+        self.on_submit: Callable[[Submitted], None] | None = None
+        self.projection_calls: list[tuple[int, float, float]] = []
+        table = vr.system.function_table
+        vr._fill(table, "getRecommendedRenderTargetSize", self._size)
+        for name, proto, fn in (("getProjectionMatrix", PROJECTION_PROTO, self._projection),
+                                ("getEyeToHeadTransform", EYE_TO_HEAD_PROTO,
+                                 self._eye_to_head)):
+            cb = proto(fn)
+            vr._keep.append(cb)
+            setattr(table, name, ctypes.cast(cb, TABLE_TYPES[name]))
+        ctable = openvr.IVRCompositor_FnTable()
+        for name, fn in (("waitGetPoses", self._wait), ("submit", self._submit)):
+            cb = COMPOSITOR_TYPES[name](fn)
+            vr._keep.append(cb)
+            setattr(ctable, name, cb)
+        self.compositor = object.__new__(openvr.IVRCompositor)
+        self.compositor.function_table = ctable
+
+    def eye_tangents(self, eye: int) -> tuple[float, float, float, float]:
+        left, right, down, up = self.tangents
+        return (left, right, down, up) if eye == openvr.Eye_Left else (right, left, down, up)
+
+    def eye_to_head(self, eye: int) -> NDArray[np.float64]:
+        m = np.zeros((3, 4))
+        m[:, :3] = np.eye(3)
+        m[0, 3] = -self.ipd / 2 if eye == openvr.Eye_Left else self.ipd / 2
+        return m
+
+    def _size(self, width: Any, height: Any) -> None:
+        width[0], height[0] = self.size
+
+    def _projection(self, out: int, eye: int, near: float, far: float) -> int:
+        self.projection_calls.append((eye, near, far))
+        m = d3d_projection(*self.eye_tangents(eye), near, far)
+        ctypes.memmove(out, np.ascontiguousarray(m, dtype=np.float32).ctypes.data, 64)
+        return out
+
+    def _eye_to_head(self, out: int, eye: int) -> int:
+        m = np.ascontiguousarray(self.eye_to_head(eye), dtype=np.float32)
+        ctypes.memmove(out, m.ctypes.data, 48)
+        return out
+
+    def _wait(self, render: Any, count: int, _game: Any, _game_count: int) -> int:
+        n = self.waits
+        self.waits += 1
+        if self.on_wait is not None:
+            self.on_wait(n)
+        self.vr.write_poses(render, count)
+        return openvr.VRCompositorError_None
+
+    def _submit(self, eye: int, texture: Any, bounds: Any, _flags: int) -> int:
+        t, b = texture[0], bounds[0]
+        s = Submitted(eye, int(t.handle or 0), int(t.eType),
+                      (b.uMin, b.vMin, b.uMax, b.vMax), self.waits - 1)
+        self.submitted.append(s)
+        if self.on_submit is not None:
+            self.on_submit(s)
+        return openvr.VRCompositorError_None

@@ -33,9 +33,11 @@ from posecast.client.headset.room import (
 from posecast.client.headset.stereo import eye_cameras, heading_of, reflected
 from posecast.client.measure.latency import LatencyRecorder
 from posecast.client.sources.base import DeviceSample, now
+from posecast.client.viewer.camera import Camera
 from posecast.client.viewer.overlay import TextItem, TextOverlay, label_items, label_text
 from posecast.client.viewer.renderer import (
     AvatarDraw,
+    PosedScene,
     Renderer,
     avatar_color,
     create_headless_context,
@@ -67,6 +69,19 @@ class PlayerLink(Protocol):
     def status(self) -> str:
         """A line on the connection and calibration, for the HUD."""
         ...
+
+
+@dataclass(frozen=True)
+class DrawnHeadset:
+    """What the last frame drew: the posed avatars (the own body first, ``own`` of them,
+    with its head; ``seen``: as the eyes saw them, head hidden), the others' avatar ids
+    in the order after it, and the eyes' cameras."""
+
+    posed: PosedScene
+    seen: PosedScene
+    own: int
+    others: list[int]
+    cameras: tuple[Camera, Camera]
 
 
 @dataclass
@@ -119,6 +134,7 @@ class HeadsetView:
         self._hud = ""
         self._hud_at = -math.inf
         self._counted: dict[int, int] = {}  # avatar id -> seq whose presentation counted
+        self.last: DrawnHeadset | None = None  # the frame drawn last (tests look at it)
 
     # ------------------------------------------------------------------ the thread
     def run(self, stop: threading.Event, done: Callable[[], None] | None = None) -> None:
@@ -210,6 +226,7 @@ class HeadsetView:
         names: list[str] = []
         colors: list[tuple[float, float, float]] = []
         drawn: list[tuple[int, float, float, int]] = []
+        others: list[int] = []
         if self.others is not None:
             with self.lock:
                 scene = self.others.frame(now())
@@ -219,6 +236,7 @@ class HeadsetView:
                 if avatar_id == own_id:
                     continue  # drawn from the local solve instead
                 draws.append(d)
+                others.append(avatar_id)
                 names.append(label_text(d.avatar.info.display_name, gone))
                 colors.append(avatar_color(avatar_id))
                 drawn.append((avatar_id, s.t_capture, s.newest.t_arrival, s.newest.seq))
@@ -245,6 +263,7 @@ class HeadsetView:
             if item is not None:
                 items.append(item)
             overlay.draw(items, *size)
+        self.last = DrawnHeadset(posed, seen, own, others, cams)
         return drawn
 
     def _hud_text(self, avatars: int) -> str:
