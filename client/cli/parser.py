@@ -107,6 +107,17 @@ def _positive_ints(text: str) -> list[int]:
     return values
 
 
+def _positive_floats(text: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected numbers separated by commas, got {text!r}") from None
+    if not values or not all(v > 0.0 and v < float("inf") for v in values):
+        raise argparse.ArgumentTypeError(f"expected positive numbers, got {text!r}")
+    return values
+
+
 def _device_set(text: str) -> str:
     """A tracker set as given (checked now; ``run_demo`` reads it)."""
     arg.devices(text)
@@ -569,6 +580,15 @@ def _parser() -> argparse.ArgumentParser:
                     help="whole runs, reporting each count's median and the median of "
                          "the runs' ratios (a run takes ~5 min)")
     bf.add_argument("--json", action="store_true", help="print one JSON document")
+    bhs = bsub.add_parser("headset", help="ms from a headset frame's poses to its submission "
+                          "(play --hmd's frame loop) at a Vive's eye size and fractions")
+    bhs.add_argument("--scales", type=_positive_floats, default=[1.0, 0.5], metavar="F,...",
+                     help="eye sizes as fractions of a Vive's 1512x1680 (default: 1,0.5)")
+    bhs.add_argument("--frames", type=arg.positive_int, default=120,
+                     help="frames measured at each size (after 10 to warm up)")
+    bhs.add_argument("--others", type=arg.count, default=3,
+                     help="other players in the room, drawn in every frame")
+    bhs.add_argument("--json", action="store_true", help="print one JSON document")
     bu = bsub.add_parser("startup", help="seconds the first commands take after set-up "
                          "(--version, serve until listening, eval of the built-in clip)")
     bu.add_argument("--runs", type=arg.positive_int, default=5,

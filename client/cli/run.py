@@ -237,6 +237,18 @@ def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
         return 0
     if args.command == "bench" and args.bench == "fanout":
         return _bench_fanout(args)
+    if args.command == "bench" and args.bench == "headset":
+        from posecast.client.bench.headset import bench_headset, format_headset_table, say
+        from posecast.client.viewer.renderer import GLUnavailableError
+
+        if any(f > 2.0 for f in args.scales):
+            return fail("bench headset", "--scales: at most 2 (3024x3360 an eye)")
+        try:
+            doc = bench_headset(args.scales, args.frames, args.others, progress=say)
+        except GLUnavailableError as err:
+            return fail("bench headset", err)
+        print(json.dumps(doc) if args.json else format_headset_table(doc))
+        return 0
     if args.command == "bench" and args.bench == "startup":
         from posecast.client.bench.startup import bench_startup, format_startup_table
 

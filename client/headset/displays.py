@@ -180,7 +180,9 @@ class FileDisplay:
         sample = self.feed.take(stop)
         if sample is None:
             return None
-        return HeadsetFrame(sample.t_capture, self.feed.head(sample), sample)
+        # the poses count from when the loop has them, as a compositor's do from
+        # WaitGetPoses: what the loop adds, not how long the sample waited for it
+        return HeadsetFrame(now(), self.feed.head(sample), sample)
 
     def present(self, ctx: moderngl.Context, textures: tuple[moderngl.Texture,
                                                               moderngl.Texture]) -> float:

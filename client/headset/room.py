@@ -29,7 +29,7 @@ MIRROR_BOTTOM_M = 0.02  # just above the floor: no z-fighting with the grid
 MIRROR_SCALE = 0.5  # the reflection's resolution, of the eye's: a mirror seen from ~2 m
 MIRROR_FRAME = (0.30, 0.28, 0.26)
 HUD_AHEAD_M = 1.2  # the HUD floats this far before the eyes ...
-HUD_BELOW_M = 0.35  # ... and this far below them: read with a glance down
+HUD_BELOW_M = 0.5  # ... and this far below them: read with a glance down
 
 
 @dataclass(frozen=True)

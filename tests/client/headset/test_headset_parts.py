@@ -108,7 +108,7 @@ def test_the_mirror_stands_ahead_facing_back_and_the_hud_below_the_eyes() -> Non
     assert m.plane @ [1.0, 1.7, 1.0, 1.0] == pytest.approx(2.0)  # the player's side: +
     head = pose_matrix([0.0, 1.7, 0.0], R.from_axis_angle([1.0, 0.0, 0.0], -0.6))
     anchor = hud_anchor(head)  # looking down does not sink the HUD into the floor
-    assert anchor[1] == pytest.approx(1.7 - 0.35) and anchor[2] == pytest.approx(-1.2)
+    assert anchor[1] == pytest.approx(1.7 - 0.5) and anchor[2] == pytest.approx(-1.2)
 
 
 # --------------------------------------------------------------------------- the body
