@@ -105,6 +105,12 @@ def test_each_refusal_names_its_reason() -> None:
                                                                      now=T0))
     assert "is for a spectator, not a player" in refusal(tokens.mint("lobby", "spectator", 60,
                                                                      now=T0))
+    # a player's token admits them as a spectator of the same room (their headset's
+    # view of it, play --hmd), and of no other room
+    player = tokens.mint("lobby", "player", 60, name="ana", now=T0)
+    assert tokens.verify(player, "lobby", "spectator", "ana", now=T0).role == "player"
+    with pytest.raises(TokenError, match="is for room 'lobby', not 'attic'"):
+        tokens.verify(player, "attic", "spectator", "ana", now=T0)
     assert "needs a join token" in refusal(None)
     for garbage in ("1", "garbage", "a.b.c", "x" * 1000):
         assert "malformed" in refusal(garbage)
