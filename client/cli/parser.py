@@ -96,26 +96,24 @@ def _origins(text: str) -> list[str]:
         raise argparse.ArgumentTypeError(str(err)) from None
 
 
-def _positive_ints(text: str) -> list[int]:
+def _positive_list(text: str, kind: type[float]) -> list[float]:
+    """Comma-separated positive finite numbers of ``kind`` (int or float)."""
     try:
-        values = [int(v) for v in text.split(",") if v.strip()]
+        values = [kind(v) for v in text.split(",") if v.strip()]
     except ValueError:
         raise argparse.ArgumentTypeError(
             f"expected numbers separated by commas, got {text!r}") from None
-    if not values or any(v <= 0 for v in values):
+    if not values or not all(0 < v < float("inf") for v in values):
         raise argparse.ArgumentTypeError(f"expected positive numbers, got {text!r}")
     return values
+
+
+def _positive_ints(text: str) -> list[int]:
+    return [int(v) for v in _positive_list(text, int)]
 
 
 def _positive_floats(text: str) -> list[float]:
-    try:
-        values = [float(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected numbers separated by commas, got {text!r}") from None
-    if not values or not all(v > 0.0 and v < float("inf") for v in values):
-        raise argparse.ArgumentTypeError(f"expected positive numbers, got {text!r}")
-    return values
+    return _positive_list(text, float)
 
 
 def _device_set(text: str) -> str:

@@ -155,8 +155,14 @@ class Mirror:
         return self._fbo, size
 
     def visible(self, camera: Camera) -> bool:
-        """Whether the eye is in front of the mirror (from behind, it is a wall)."""
-        return float(self.placement.plane[:3] @ camera.eye + self.placement.plane[3]) > 0.0
+        """Whether the eye sees the mirror's face: in front of it (from behind it is a
+        wall) and with the mirror in its view (else its pass is skipped: a third of a
+        frame's drawing)."""
+        p = self.placement
+        if float(p.plane[:3] @ camera.eye + p.plane[3]) <= 0.0:
+            return False
+        radius = 0.5 * float(np.hypot(p.width, p.height))
+        return bool(camera.spheres_visible(p.centre[None, :], np.array([radius]))[0])
 
     def draw(self, camera: Camera, eye_size: tuple[int, int]) -> None:
         """The mirror's quad, showing the reflected pass, into the bound framebuffer."""

@@ -141,8 +141,9 @@ class OpenVRSource:
         self._poses = (openvr.TrackedDevicePose_t * openvr.k_unMaxTrackedDeviceCount)()
         self._view = np.frombuffer(self._poses, dtype=POSE_DTYPE)  # shares the ctypes memory
         self._event = openvr.VREvent_t()
-        self._roles: tuple[str, ...] = ()
-        self._indices = np.zeros(0, dtype=np.intp)
+        # (roles, their device indices), replaced whole by a rescan: a headset's frame
+        # loop (play --hmd) maps the compositor's poses on its own thread meanwhile
+        self._mapping: tuple[tuple[str, ...], NDArray[np.intp]] = ((), np.zeros(0, np.intp))
         self._next_scan = 0.0
         self._ended = False
         # when each device index was last Running_OK (for Running_OutOfRange)
@@ -168,14 +169,15 @@ class OpenVRSource:
             if role is not None:
                 auto.setdefault(role, i)  # lowest index wins a contested role
         found = {**auto, **override}
-        self._roles = tuple(r for r in ROLES if r in found)
-        self._indices = np.array([found[r] for r in self._roles], dtype=np.intp)
+        roles = tuple(r for r in ROLES if r in found)
+        self._mapping = (roles, np.array([found[r] for r in roles], dtype=np.intp))
         self._next_scan = now() + RESCAN_SECONDS
 
     @property
     def device_roles(self) -> dict[str, int]:
         """Role -> OpenVR device index, as of the last scan."""
-        return dict(zip(self._roles, (int(i) for i in self._indices), strict=True))
+        roles, indices = self._mapping
+        return dict(zip(roles, (int(i) for i in indices), strict=True))
 
     def _auto_role(self, i: int, cls: int) -> str | None:
         if cls == openvr.TrackedDeviceClass_HMD:
@@ -230,15 +232,16 @@ class OpenVRSource:
         """The sample of a pose array (``POSE_DTYPE`` over k_unMaxTrackedDeviceCount
         TrackedDevicePose_t, as read here or as the compositor's WaitGetPoses hands it to
         a headset's frame) with this source's roles, captured at ``t``."""
-        sel = poses[self._indices]
+        roles, indices = self._mapping  # one mapping for the whole sample
+        sel = poses[indices]
         valid = (sel["valid"] != 0) & (sel["connected"] != 0)
         running = valid & (sel["result"] == openvr.TrackingResult_Running_OK)
-        self._last_ok[self._indices[running]] = t
+        self._last_ok[indices[running]] = t
         imu_only = valid & (sel["result"] == openvr.TrackingResult_Running_OutOfRange)
-        ok = running | (imu_only & (t - self._last_ok[self._indices] <= OUT_OF_RANGE_S))
+        ok = running | (imu_only & (t - self._last_ok[indices] <= OUT_OF_RANGE_S))
         pos, rot = poses_from_matrices(sel["m"][ok])
-        roles = tuple(r for r, keep in zip(self._roles, ok, strict=True) if keep)
-        return DeviceSample.of(t, roles, pos, rot)
+        kept = tuple(r for r, keep in zip(roles, ok, strict=True) if keep)
+        return DeviceSample.of(t, kept, pos, rot)
 
     def calibration(self) -> DeviceSample:
         """The current sample, once the head and both hands are tracked: every device

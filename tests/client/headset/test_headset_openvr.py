@@ -449,3 +449,49 @@ def test_another_player_standing_in_front_is_drawn_where_they_stand() -> None:
     assert m.viewer_reports >= 1
     assert m.headset_latency.count("pose_to_submit") >= 1
     assert m.viewer_latency.count("capture_to_presented") >= 1
+
+
+def test_a_blocked_compositor_never_stalls_the_players_stream() -> None:
+    """WaitGetPoses held for a second (as when another application has the focus): the
+    frame loop waits in it, and the player's 90 Hz stream goes on meanwhile."""
+    tpose = tpose_facing_minus_z()
+    vr = six_point_vr(tpose)
+    fake = FakeCompositor(vr, size=(64, 72))
+    source = OpenVRSource(system=vr.system)
+    held = threading.Event()
+    release = threading.Event()
+    counts: list[int] = []
+
+    async def scenario() -> None:
+        async with serving(Session()) as url:
+            player = Player(url, "room", "me", source)
+            display = CompositorDisplay(Compositor(vr.system, fake.compositor),
+                                        source.sample_of)
+            stop = asyncio.Event()
+            headset = Headset(player, display, None, stop=stop, mirror_distance=None,
+                              spectate=False)
+
+            def on_wait(n: int) -> None:
+                if n == 3:  # a few frames in: hold this wait until the test lets go
+                    held.set()
+                    release.wait(TIMEOUT)
+
+            fake.on_wait = on_wait
+
+            async def hold_for_a_second() -> None:
+                while not held.is_set():
+                    await asyncio.sleep(0.01)
+                before = player.stats.frames_sent
+                await asyncio.sleep(1.0)
+                counts.extend([before, player.stats.frames_sent, headset.stats.frames])
+                release.set()
+                stop.set()
+            holder = asyncio.create_task(hold_for_a_second())
+            async with headset:
+                await asyncio.wait_for(player.run(stop=stop), TIMEOUT)
+            await holder
+
+    asyncio.run(scenario())
+    before, after, frames = counts
+    assert frames <= 3  # the loop was in WaitGetPoses the whole second
+    assert after - before >= 45, f"{after - before} frames sent in the second it waited"

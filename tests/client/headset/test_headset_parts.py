@@ -196,3 +196,26 @@ def test_hmd_out_writes_both_eyes_side_by_side(tmp_path: Path) -> None:
     assert (pixels[:, :w] != pixels[:, w:]).any()  # two eyes, not one picture twice
     assert "headset: 4 frames, 378x420 an eye; pose to submit p50" in stdout
     assert seen > 0  # and the player streamed to the room meanwhile
+
+
+def test_the_mirror_is_drawn_only_when_an_eye_sees_its_face() -> None:
+    from posecast.client.headset.room import Mirror
+    from posecast.client.viewer.renderer import create_headless_context
+
+    try:
+        ctx = create_headless_context()
+    except Exception as err:
+        pytest.skip(f"no headless OpenGL: {err}")
+    try:
+        mirror = Mirror(ctx, place_mirror(np.array([0.0, 1.7, 0.0]),
+                                          np.array([0.0, 0.0, -1.0]), 2.0))
+        setup = vive_setup()
+        facing = pose_matrix([0.0, 1.7, 0.0], R.IDENTITY)  # looking at it
+        away = pose_matrix([0.0, 1.7, 0.0], R.from_axis_angle([0.0, 1.0, 0.0], np.pi))
+        behind = pose_matrix([0.0, 1.7, -3.0], R.from_axis_angle([0.0, 1.0, 0.0], np.pi))
+        assert all(mirror.visible(c) for c in eye_cameras(facing, setup))
+        assert not any(mirror.visible(c) for c in eye_cameras(away, setup))
+        assert not any(mirror.visible(c) for c in eye_cameras(behind, setup))
+        mirror.release()
+    finally:
+        ctx.release()
