@@ -10,6 +10,7 @@ the table does not hold.
 
 from __future__ import annotations
 
+import dataclasses
 import http
 import json
 from collections.abc import Callable, Mapping
@@ -37,6 +38,8 @@ class Reply:
     # with it, a request whose If-None-Match names it gets 304 and no body
     etag: str | None = None
     headers: tuple[tuple[str, str], ...] = ()
+    # the body gzipped ahead (the page's files): sent to a client that accepts gzip
+    gzipped: bytes | None = None
 
 
 Route = Callable[[], Reply]
@@ -71,6 +74,9 @@ class HttpRoutes:
                           f"{request.method} is not allowed here: GET only\n")
         else:
             reply = route()
+            if reply.gzipped is not None:  # two representations: caches must ask which
+                reply = gzip_variant(reply) if accepts_gzip(request) else dataclasses.replace(
+                    reply, headers=(*reply.headers, ("Vary", "Accept-Encoding")))
             if reply.etag is not None and _matches(request, reply.etag):
                 return _response(reply, not_modified=True)
         return _response(reply)
@@ -112,6 +118,36 @@ def health(session: Session) -> Reply:
             "players": sum(a.connected for r in rooms for a in r.avatars.values()),
             "spectators": sum(len(r.spectators) for r in rooms)}
     return Reply(json.dumps(body).encode() + b"\n", "application/json")
+
+
+def accepts_gzip(request: Request) -> bool:
+    """Accept-Encoding allows gzip (listed, or ``*``, and not with q=0; RFC 9110 12.5.3)."""
+    offered = ",".join(request.headers.get_all("Accept-Encoding")).lower()
+    allowed = {}
+    for item in offered.split(","):
+        name, _, params = item.strip().partition(";")
+        q = 1.0
+        for param in params.split(";"):
+            key, _, value = param.strip().partition("=")
+            if key == "q":
+                try:
+                    q = float(value)
+                except ValueError:
+                    q = 0.0
+        if name:
+            allowed[name.strip()] = q
+    q = allowed.get("gzip", allowed.get("x-gzip", allowed.get("*", 0.0)))
+    return q > 0.0
+
+
+def gzip_variant(reply: Reply) -> Reply:
+    """The gzipped representation of ``reply``: its own body, Content-Encoding and ETag
+    (a strong ETag names one representation, RFC 9110 8.8.3)."""
+    assert reply.gzipped is not None
+    etag = None if reply.etag is None else reply.etag[:-1] + '-gz"'
+    return dataclasses.replace(reply, body=reply.gzipped, etag=etag, gzipped=None,
+                               headers=(*reply.headers, ("Content-Encoding", "gzip"),
+                                        ("Vary", "Accept-Encoding")))
 
 
 def _is_upgrade(request: Request) -> bool:
