@@ -2,9 +2,9 @@
 
 A message is a msgpack map of its fields with a string ``type``; nested records (the
 avatars of a roster, the frames of a batch) are maps without one. Float arrays are msgpack
-bin (tracker poses and skeleton offsets float64, an avatar's root float32), joint rotations
-5 bytes each (protocol.quantize). ``decode`` checks the size before parsing and raises
-only ``ProtocolError``, whatever the bytes.
+bin (tracker poses float32, their roles device indices; skeleton offsets float64; an
+avatar's root float32), joint rotations 5 bytes each (protocol.quantize). ``decode``
+checks the size before parsing and raises only ``ProtocolError``, whatever the bytes.
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ from posecast.protocol.messages import (
     Message,
     TrackerFrame,
     TrackerPoses,
+    role_indices,
     tracker_poses_from_wire,
 )
 from posecast.protocol.validation import (
@@ -150,7 +151,12 @@ def encode_tracker_frame(seq: int, roles: Sequence[str], poses: NDArray[Any],
     if poses.ndim != 2 or poses.shape != checked.shape or not checked_poses(poses, checked):
         return encode(TrackerFrame(seq=seq, roles=tuple(roles), poses=poses,  # type: ignore[arg-type]
                                    t_capture=t_capture, clock_offset=clock_offset))
-    wire = checked.astype("<f8", copy=False)  # no copy on a little-endian machine
-    return msgpack.packb({"roles": list(roles), "poses": wire.tobytes(),
+    try:
+        indices = list(role_indices(tuple(roles)))
+    except KeyError:  # an unknown role: the message says which
+        return encode(TrackerFrame(seq=seq, roles=tuple(roles), poses=poses,  # type: ignore[arg-type]
+                                   t_capture=t_capture, clock_offset=clock_offset))
+    wire = checked.astype("<f4")  # the float32 values checked_poses rounded to
+    return msgpack.packb({"roles": indices, "poses": wire.tobytes(),
                           "t_capture": float(t_capture), "clock_offset": float(clock_offset),
                           "type": "tracker_frame", "seq": int(seq)}, use_bin_type=True)

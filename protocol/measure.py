@@ -80,6 +80,29 @@ def sample_avatar_batch(avatars: int, num_joints: int = MAKEHUMAN_JOINTS,
         t_solved=now + 1.2e-3, t_sent=now + 1.3e-3)
 
 
+def tracker_frame_error(samples: int = 1_000_000, reach_m: float = 10.0,
+                        seed: int = 0) -> tuple[float, float]:
+    """What protocol 3's float32 poses cost: the largest position error (micrometres,
+    positions anywhere within ``reach_m``) and rotation error (degrees) of ``samples``
+    random device poses against what the server reads back (``checked_poses``)."""
+    from posecast.protocol.validation import checked_poses
+
+    rng = np.random.default_rng(seed)
+    poses = np.empty((samples, 7))
+    direction = rng.normal(size=(samples, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    poses[:, :3] = direction * reach_m * rng.uniform(0.0, 1.0, (samples, 1)) ** (1 / 3)
+    poses[:, 3:] = _unit_quaternions(rng, samples)
+    back = np.empty_like(poses)
+    if not checked_poses(poses, back):
+        raise AssertionError("a random pose within the limits was refused")
+    position_um = float(np.linalg.norm(back[:, :3] - poses[:, :3], axis=1).max()) * 1e6
+    dot = np.abs(np.einsum("ij,ij->i", back[:, 3:], poses[:, 3:]))
+    dot /= np.linalg.norm(back[:, 3:], axis=1)
+    rotation_deg = float(np.degrees(2.0 * np.arccos(np.clip(dot, 0.0, 1.0))).max())
+    return position_um, rotation_deg
+
+
 def tracker_frame_bytes(roles: tuple[DeviceRole, ...] = VIVE_RIG) -> int:
     return len(encode(sample_tracker_frame(roles)))
 

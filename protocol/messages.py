@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import functools
 import math
+import reprlib
 from typing import Annotated, Any, Literal, NamedTuple
 
 import numpy as np
@@ -63,8 +64,10 @@ from posecast.protocol.validation import (
 )
 
 # 2: rosters name each avatar's devices, batches say which of them are lost (any
-# tracker set); a version-1 peer is refused with a clear error
-PROTOCOL_VERSION = 2
+# tracker set); 3: tracker frames and calibrations carry float32 poses and their roles
+# as indices into DEVICE_ROLES (745 -> ~340 bytes for 11 devices). An older peer is
+# refused with a clear error
+PROTOCOL_VERSION = 3
 SUPPORTED_VERSIONS = frozenset({PROTOCOL_VERSION})
 
 Array = NDArray[np.float64]
@@ -184,12 +187,32 @@ class AvatarRoster(Model):
 
 # --------------------------------------------------------------------------- tracking
 class _DevicePoses(Model):
-    """Poses of tracked devices: one row per role, position (3) + quaternion x y z w (4)."""
+    """Poses of tracked devices: one row per role, position (3) + quaternion x y z w (4).
+
+    On the wire (protocol 3) the roles are indices into DEVICE_ROLES and the poses
+    packed little-endian float32; in Python the roles are names and the poses float64
+    holding those float32 values (``checked_poses``), so a message round-trips exactly.
+    """
 
     roles: tuple[DeviceRole, ...] = Field(min_length=1, max_length=len(DEVICE_ROLES))
-    poses: Array  # (D, 7) float64; positions in metres, quaternions normalised
+    poses: Array  # (D, 7) float32 values; positions in metres, quaternions normalised
     t_capture: Time  # client clock, seconds: when the poses were read
     clock_offset: Time  # the client's estimate of server clock - client clock
+
+    @field_validator("roles", mode="before")
+    @classmethod
+    def _role_indices(cls, value: Any, info: ValidationInfo) -> Any:
+        if not is_wire(info):
+            return value
+        if not isinstance(value, list | tuple):
+            raise ValueError(f"expected a list of device indices, got {type(value).__name__}")
+        names = []
+        for i, index in enumerate(value):
+            if type(index) is not int or not 0 <= index < len(DEVICE_ROLES):
+                raise ValueError(f"roles[{i}]: {reprlib.repr(index)} is not a device index "
+                                 f"(0 to {len(DEVICE_ROLES) - 1}: {', '.join(DEVICE_ROLES)})")
+            names.append(DEVICE_ROLES[index])
+        return tuple(names)
 
     @field_validator("roles")
     @classmethod
@@ -199,18 +222,22 @@ class _DevicePoses(Model):
             raise ValueError(f"device role {dup!r} appears twice")
         return roles
 
+    @field_serializer("roles")
+    def _roles_wire(self, roles: tuple[str, ...]) -> list[int]:
+        return list(role_indices(roles))
+
     @field_validator("poses", mode="plain")
     @classmethod
     def _poses(cls, value: Any, info: ValidationInfo) -> Array:
         roles = info.data.get("roles")
-        poses = as_rows(value, 7, is_wire(info))
+        poses = as_rows(value, 7, is_wire(info), "<f4")
         if roles is not None and len(roles) != poses.shape[0]:
             raise ValueError(f"{poses.shape[0]} pose rows for {len(roles)} roles")
         return readonly(device_poses(poses, roles))
 
     @field_serializer("poses")
     def _poses_wire(self, poses: Array) -> bytes:
-        return np.ascontiguousarray(poses, dtype="<f8").tobytes()
+        return np.ascontiguousarray(poses, dtype="<f4").tobytes()
 
     @property
     def t_capture_server(self) -> float:
@@ -252,16 +279,26 @@ class TrackerPoses(NamedTuple):
 
 
 _TRACKER_FIELDS = frozenset(TrackerFrame.model_fields)
-_KNOWN_ROLES = frozenset(DEVICE_ROLES)
-_POSE_ROW_BYTES = 7 * 8  # position | quaternion, little-endian float64
+_POSE_ROW_BYTES = 7 * 4  # position | quaternion, little-endian float32
+_ROLE_INDEX: dict[str, int] = {role: i for i, role in enumerate(DEVICE_ROLES)}
+
+
+@functools.lru_cache(maxsize=256)  # bounded: role tuples come from callers' sources
+def role_indices(roles: tuple[str, ...]) -> tuple[int, ...]:
+    """Each role's index into DEVICE_ROLES: how a frame's roles travel."""
+    return tuple(_ROLE_INDEX[r] for r in roles)
 
 
 # bounded: the roles come from clients; a player sends the same ones every frame
 @functools.lru_cache(maxsize=256)
-def _valid_roles(roles: tuple[Any, ...]) -> bool:
-    """TrackerFrame's rules for roles: known, distinct, one to len(DEVICE_ROLES)."""
-    return (1 <= len(roles) <= len(DEVICE_ROLES) and all(r in _KNOWN_ROLES for r in roles)
-            and first_duplicate(roles) is None)
+def _role_names(indices: tuple[int, ...]) -> tuple[str, ...] | None:
+    """TrackerFrame's rules for roles: known device indices, distinct, one to
+    len(DEVICE_ROLES); their names, or None."""
+    if not 1 <= len(indices) <= len(DEVICE_ROLES) or len(set(indices)) != len(indices):
+        return None
+    if not all(0 <= i < len(DEVICE_ROLES) for i in indices):
+        return None
+    return tuple(DEVICE_ROLES[i] for i in indices)
 
 
 def tracker_poses_from_wire(obj: dict[str, Any]) -> TrackerPoses | None:
@@ -279,14 +316,16 @@ def tracker_poses_from_wire(obj: dict[str, Any]) -> TrackerPoses | None:
             or not math.isfinite(clock_offset) or type(roles) is not list
             or type(data) is not bytes or len(data) != _POSE_ROW_BYTES * len(roles)):
         return None
-    try:
-        role_tuple = tuple(roles)
-        if not _valid_roles(role_tuple):
-            return None
-    except TypeError:  # an unhashable role (a list, a map)
+    # ints only, before the cache: 1.0 and True hash and compare equal to 1
+    if not all(type(i) is int for i in roles):
+        return None
+    role_tuple = _role_names(tuple(roles))
+    if role_tuple is None:
         return None
     poses = np.empty((len(roles), 7))
-    if not checked_poses(np.frombuffer(data, "<f8").reshape(-1, 7), poses):
+    with np.errstate(invalid="ignore"):  # a signalling NaN: refused by the check next
+        wide = np.frombuffer(data, "<f4").reshape(-1, 7).astype(np.float64)
+    if not checked_poses(wide, poses):
         return None
     return TrackerPoses(seq, role_tuple, readonly(poses), t_capture, clock_offset)
 

@@ -111,7 +111,10 @@ def as_rows(value: Any, width: int, wire: bool, wire_dtype: str = "<f8",
             raise ValueError(f"{len(value)} bytes is not a whole number of rows of "
                              f"{width} x {wire_dtype} ({row_bytes} bytes)")
         array = np.frombuffer(value, dtype=wire_dtype).reshape(-1, width)
-        return array if array.dtype == np.float64 else array.astype(np.float64)
+        if array.dtype == np.float64:
+            return array
+        with np.errstate(invalid="ignore"):  # a signalling NaN: refused by the checks next
+            return array.astype(np.float64)
     if wire:
         raise ValueError(f"expected packed {wire_dtype} bytes, got {type(value).__name__}")
     if isinstance(value, str):
@@ -187,6 +190,10 @@ _MAX_POSITION2 = MAX_POSITION_M**2
 # normalised row can move it by an ulp, and decode(encode(m)) should give m back exactly.
 _NORM2_TOL = 2.0 * QUAT_NORM_TOLERANCE
 _UNIT_EXACT = 1e-12
+# Device poses travel as float32 (protocol 3): a row is kept as the float32 it travels
+# as, and a unit quaternion rounded to float32 is off unit by up to ~2.4e-7 in norm^2, so
+# rows within _POSE_UNIT_EXACT are not renormalised: decode(encode(m)) gives m exactly
+_POSE_UNIT_EXACT = 1e-6
 
 
 def check_positions(positions: NDArray[np.float64], labels: Sequence[str] | None = None,
@@ -225,10 +232,11 @@ def _explain_quaternions(q: NDArray[np.float64], norm2: NDArray[np.float64],
 @njit(types.boolean(types.Array(types.float64, 2, "A", readonly=True), types.float64[:, ::1]),
       cache=True)
 def checked_poses(poses: NDArray[np.float64], out: NDArray[np.float64]) -> bool:
-    """Copy (D, 7) pose rows into ``out`` with normalised quaternions (all rows, when any
-    is off unit by more than _UNIT_EXACT), or return False if a position is beyond
-    MAX_POSITION_M or a quaternion off unit by more than the tolerance (NaN fails both).
-    Compiled: numpy took 6 us for this in small calls, on every tracker frame."""
+    """Copy (D, 7) pose rows into ``out`` as the float32 they travel as, with normalised
+    quaternions (all rows, when any is off unit by more than _POSE_UNIT_EXACT), or return
+    False if a position is beyond MAX_POSITION_M or a quaternion off unit by more than
+    the tolerance (NaN fails both). Compiled: numpy took 6 us for this in small calls,
+    on every tracker frame."""
     worst = 0.0
     for i in range(poses.shape[0]):
         x, y, z = poses[i, 0], poses[i, 1], poses[i, 2]
@@ -239,17 +247,19 @@ def checked_poses(poses: NDArray[np.float64], out: NDArray[np.float64]) -> bool:
         worst = max(worst, deviation)
     for i in range(poses.shape[0]):
         scale = 1.0
-        if worst > _UNIT_EXACT:
+        if worst > _POSE_UNIT_EXACT:
             scale = math.sqrt(poses[i, 3] ** 2 + poses[i, 4] ** 2 + poses[i, 5] ** 2
                               + poses[i, 6] ** 2)
         for k in range(7):
-            out[i, k] = poses[i, k] / scale if k >= 3 else poses[i, k]
+            v = poses[i, k] / scale if k >= 3 else poses[i, k]
+            out[i, k] = np.float32(v)
     return True
 
 
 def device_poses(poses: NDArray[np.float64], labels: Sequence[str] | None = None,
                  ) -> NDArray[np.float64]:
-    """(D, 7) position + quaternion rows -> a new array with normalised quaternions.
+    """(D, 7) position + quaternion rows -> a new array with normalised quaternions, each
+    value the float32 it travels as (``checked_poses``).
 
     The hot path of a server (every tracker frame): both checks in one compiled pass;
     on failure the row-by-row checks explain what was wrong.

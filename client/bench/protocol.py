@@ -16,6 +16,7 @@ from posecast.protocol.measure import (
     time_avatar_batch,
     time_decode_tracker_frame,
     tracker_frame_bytes,
+    tracker_frame_error,
 )
 
 
@@ -32,9 +33,12 @@ def bench_protocol() -> dict[str, object]:
     batch = time_avatar_batch(16)
     tracker = time_decode_tracker_frame()
     model = time_decode_tracker_frame(model=True)
+    position_um, rotation_deg = tracker_frame_error()
     return {"joints": MAKEHUMAN_JOINTS,
             "bytes_per_avatar_frame": round(bytes_per_avatar_frame(), 1),
             "tracker_frame_bytes": tracker_frame_bytes(),
+            "tracker_frame_float32_worst": {"position_um": round(position_um, 3),
+                                            "rotation_deg": float(f"{rotation_deg:.2g}")},
             "quantization_worst_deg_measured": round(worst_quantization_deg(), 4),
             "quantization_bound_deg": round(MAX_ANGLE_ERROR_DEG, 4),
             "decode_tracker_frame_us": {"p50": round(tracker.median_us, 2),

@@ -13,6 +13,7 @@ from posecast.protocol.measure import (
     time_calls,
     time_decode_tracker_frame,
     tracker_frame_bytes,
+    tracker_frame_error,
 )
 
 # one avatar in a batch (a row of each column): avatar_id and seq int64 (16), root
@@ -43,12 +44,12 @@ def test_quantized_frame_is_far_smaller_than_float32() -> None:
 
 
 def test_tracker_frame_bytes() -> None:
-    # 10 devices: 560 bytes of float64 poses, 124 of role names, the rest keys and scalars
-    assert tracker_frame_bytes() == 745
-    # two devices: 8 rows and 8 role strings fewer, and 112 bytes fit a bin8 header
-    assert tracker_frame_bytes(("head", "hip")) == 745 - 8 * 56 - sum(
-        len(r) + 1 for r in ("left_hand", "right_hand", "left_forearm", "right_forearm",
-                             "left_foot", "right_foot", "left_knee", "right_knee")) - 1
+    # 10 devices (protocol 3): 280 bytes of float32 poses, 10 one-byte role indices, the
+    # rest keys and scalars; protocol 2's float64 poses and role names made 745
+    assert tracker_frame_bytes() == 376
+    # two devices: 8 rows and 8 role indices fewer, and 56 bytes fit a bin8 header
+    # (280 needed bin16's)
+    assert tracker_frame_bytes(("head", "hip")) == 376 - 8 * 28 - 8 - 1
 
 
 def test_time_calls_measures_what_it_times() -> None:
@@ -69,3 +70,12 @@ def test_tracker_frame_decode_is_within_a_loose_budget() -> None:
     for model in (False, True):
         timing = time_decode_tracker_frame(runs=3000, model=model)
         assert 0.0 < timing.median_us < 60.0
+
+
+def test_float32_poses_cost_under_a_micrometre_and_a_hundred_thousandth_of_a_degree(
+        ) -> None:
+    # within 10 m a coordinate's float32 ulp is at most 2**-20 m (0.95 um): half of it on
+    # each of three axes is 0.83 um; a quaternion's components round by 2**-25 at most
+    position_um, rotation_deg = tracker_frame_error(100_000)
+    assert 0.0 < position_um <= 0.83
+    assert 0.0 < rotation_deg < 1e-5

@@ -195,7 +195,7 @@ def _frame(seq: int, s: DeviceSample, t_capture: float, clock_offset: float,
 def _hostile_t_pose(scale: float = 1.0) -> bytes:
     t_pose, _ = _samples((3.0, 0.0) if scale == 1.0 else (0.0, 0.0), 0)
     raw = msgpack.unpackb(encode(calibrate_message(t_pose, 0.0)))
-    poses = np.frombuffer(raw["poses"], "<f8").reshape(-1, 7).copy()
+    poses = np.frombuffer(raw["poses"], "<f4").reshape(-1, 7).copy()
     poses[:, :3] *= scale
     raw["poses"] = poses.tobytes()
     return msgpack.packb(raw)

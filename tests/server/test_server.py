@@ -35,6 +35,7 @@ from posecast.protocol import (
     quantize_rotations,
     rotation_angle,
 )
+from posecast.protocol.validation import device_poses
 from posecast.server.app import Session
 from posecast.server.avatars import AvatarSolver
 from posecast.server.clock import now
@@ -194,17 +195,19 @@ def test_spectator_receives_the_offline_solution(session: Session, recording: Vi
         assert session.busy is not None
         assert session.busy.warm.steps > frames  # it ran while idle, on the frames' data
         assert session.busy.bursts.count == 0
-    # the same recording solved offline, frame by frame, warm-started
+    # the same recording solved offline, frame by frame, warm-started, from the poses as
+    # they travel (protocol 3: float32)
     rig = session.rig
     rec = recording
-    cal = calibrate(rig, dict(zip(rec.devices, rec.positions[0], strict=True)),
-                    dict(zip(rec.devices, rec.rotations[0], strict=True)))
+    tpose = device_poses(poses(rec, 0))
+    cal = calibrate(rig, dict(zip(rec.devices, tpose[:, :3], strict=True)),
+                    dict(zip(rec.devices, tpose[:, 3:], strict=True)))
     solver = Solver(rig, session.solver_name)
     state = PoseBatch(cal.pose[None].copy(), cal.root[None].copy())
     rows = TrackingRows(1)  # every device drives, as on the server
     rows.calibrate(0, cal)
     for f, batch in enumerate(received):
-        rows.stage(0, slots_of(rec.devices), poses(rec, f + 1), 0.0)
+        rows.stage(0, slots_of(rec.devices), device_poses(poses(rec, f + 1)), 0.0)
         rows.fill(np.zeros(1, dtype=np.intp))
         solver.solve(rows.targets[:1], state, cal.offsets[None], rows.weights[:1])
         (frame,) = batch.frames
@@ -264,7 +267,7 @@ def _bad_messages(rec: ViveRecording) -> list[tuple[str, bytes, str]]:
     wrong_type = {**frame, "seq": "three"}
     nan = poses(rec, 3).copy()
     nan[2, 1] = math.nan
-    nan_frame = {**frame, "poses": nan.astype("<f8").tobytes()}
+    nan_frame = {**frame, "poses": nan.astype("<f4").tobytes()}
     # over the protocol's 4 KiB, within websockets' bound (which closes with 1009)
     huge = {**frame, "padding": b"x" * 3800}
     old = {"type": "hello", "protocol_version": 99, "role": "player", "room": "x",

@@ -9,7 +9,7 @@ import { decode as unpack, encode as pack } from "@msgpack/msgpack";
 import { dequantizeRotations, RotationError } from "./quantize.js";
 
 // 2: rosters name each avatar's devices, batches say which of them are lost now
-export const PROTOCOL_VERSION = 2;
+export const PROTOCOL_VERSION = 3;
 export const MAX_MESSAGE_BYTES = 1 << 20; // what a viewer accepts (protocol.validation)
 export const MAX_JOINTS = 256;
 export const MAX_AVATARS = 1024;

@@ -265,8 +265,10 @@ def test_tracker_frame_from_a_sample_round_trips_exactly() -> None:
     assert msg.seq == 41 and msg.roles == ROLES
     assert msg.t_capture == s.t_capture and msg.clock_offset == -3.25e-4
     assert msg.t_capture_server == s.t_capture - 3.25e-4
-    np.testing.assert_array_equal(msg.positions, s.positions)
-    np.testing.assert_allclose(msg.rotations, s.rotations, rtol=0, atol=1e-15)
+    # the poses as the float32 they travel as (protocol 3): within half a float32 ulp
+    np.testing.assert_array_equal(msg.positions, s.positions.astype(np.float32))
+    np.testing.assert_allclose(msg.positions, s.positions, rtol=2**-24, atol=0)
+    np.testing.assert_allclose(msg.rotations, s.rotations, rtol=0, atol=2**-24)
     back = decode(encode(msg))
     assert isinstance(back, TrackerFrame)
     assert back.seq == msg.seq and back.roles == msg.roles
@@ -282,7 +284,8 @@ def test_calibrate_from_a_sample_round_trips_exactly() -> None:
     assert isinstance(back, Calibrate)
     assert back.roles == s.roles and back.t_capture == s.t_capture
     np.testing.assert_array_equal(back.poses, msg.poses)
-    np.testing.assert_allclose(msg.poses, s.poses, rtol=0, atol=1e-15)  # the sample's rows
+    # the sample's rows, as float32 (positions within 2 m: an ulp is 1.2e-7)
+    np.testing.assert_allclose(msg.poses, s.poses, rtol=0, atol=2**-23)
 
 
 def test_messages_from_the_builtin_motion_source() -> None:
@@ -292,7 +295,7 @@ def test_messages_from_the_builtin_motion_source() -> None:
     assert sample is not None
     frame = decode(encode(tracker_frame(0, sample, 0.0)))
     assert isinstance(frame, TrackerFrame) and frame.roles == sample.roles
-    np.testing.assert_array_equal(frame.positions, sample.positions)
+    np.testing.assert_array_equal(frame.positions, sample.positions.astype(np.float32))
     assert cal.roles == src.calibration().roles
 
 
