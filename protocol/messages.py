@@ -230,7 +230,10 @@ class _DevicePoses(Model):
     @classmethod
     def _poses(cls, value: Any, info: ValidationInfo) -> Array:
         roles = info.data.get("roles")
-        poses = as_rows(value, 7, is_wire(info), "<f4")
+        if isinstance(value, bytes) and len(value) % 28 == 0:  # the wire's float32 rows
+            poses: NDArray[np.floating] = np.frombuffer(value, "<f4").reshape(-1, 7)
+        else:
+            poses = as_rows(value, 7, is_wire(info), "<f4")
         if roles is not None and len(roles) != poses.shape[0]:
             raise ValueError(f"{poses.shape[0]} pose rows for {len(roles)} roles")
         return readonly(device_poses(poses, roles))
@@ -281,6 +284,7 @@ class TrackerPoses(NamedTuple):
 _TRACKER_FIELDS = frozenset(TrackerFrame.model_fields)
 _POSE_ROW_BYTES = 7 * 4  # position | quaternion, little-endian float32
 _ROLE_INDEX: dict[str, int] = {role: i for i, role in enumerate(DEVICE_ROLES)}
+_INT_ONLY = {int}
 
 
 @functools.lru_cache(maxsize=256)  # bounded: role tuples come from callers' sources
@@ -317,15 +321,13 @@ def tracker_poses_from_wire(obj: dict[str, Any]) -> TrackerPoses | None:
             or type(data) is not bytes or len(data) != _POSE_ROW_BYTES * len(roles)):
         return None
     # ints only, before the cache: 1.0 and True hash and compare equal to 1
-    if not all(type(i) is int for i in roles):
+    if set(map(type, roles)) != _INT_ONLY:
         return None
     role_tuple = _role_names(tuple(roles))
     if role_tuple is None:
         return None
     poses = np.empty((len(roles), 7))
-    with np.errstate(invalid="ignore"):  # a signalling NaN: refused by the check next
-        wide = np.frombuffer(data, "<f4").reshape(-1, 7).astype(np.float64)
-    if not checked_poses(wide, poses):
+    if not checked_poses(np.frombuffer(data, "<f4").reshape(-1, 7), poses):
         return None
     return TrackerPoses(seq, role_tuple, readonly(poses), t_capture, clock_offset)
 

@@ -229,9 +229,11 @@ def _explain_quaternions(q: NDArray[np.float64], norm2: NDArray[np.float64],
 
 
 # read-only, any layout: writable arrays convert to it, wire buffers are it
-@njit(types.boolean(types.Array(types.float64, 2, "A", readonly=True), types.float64[:, ::1]),
-      cache=True)
-def checked_poses(poses: NDArray[np.float64], out: NDArray[np.float64]) -> bool:
+# float64 rows (a player's own arrays) or the float32 rows of a wire buffer, read as they
+# are: a numpy cast first cost a copy and, for NaN, a warning to silence (~3 us a frame)
+@njit([types.boolean(types.Array(dtype, 2, "A", readonly=True), types.float64[:, ::1])
+       for dtype in (types.float64, types.float32)], cache=True)
+def checked_poses(poses: NDArray[np.floating], out: NDArray[np.float64]) -> bool:
     """Copy (D, 7) pose rows into ``out`` as the float32 they travel as, with normalised
     quaternions (all rows, when any is off unit by more than _POSE_UNIT_EXACT), or return
     False if a position is beyond MAX_POSITION_M or a quaternion off unit by more than
@@ -239,8 +241,9 @@ def checked_poses(poses: NDArray[np.float64], out: NDArray[np.float64]) -> bool:
     on every tracker frame."""
     worst = 0.0
     for i in range(poses.shape[0]):
-        x, y, z = poses[i, 0], poses[i, 1], poses[i, 2]
-        qx, qy, qz, qw = poses[i, 3], poses[i, 4], poses[i, 5], poses[i, 6]
+        x, y, z = float(poses[i, 0]), float(poses[i, 1]), float(poses[i, 2])
+        qx, qy, qz = float(poses[i, 3]), float(poses[i, 4]), float(poses[i, 5])
+        qw = float(poses[i, 6])
         deviation = abs(qx * qx + qy * qy + qz * qz + qw * qw - 1.0)
         if not (x * x + y * y + z * z <= _MAX_POSITION2 and deviation <= _NORM2_TOL):
             return False
@@ -248,15 +251,15 @@ def checked_poses(poses: NDArray[np.float64], out: NDArray[np.float64]) -> bool:
     for i in range(poses.shape[0]):
         scale = 1.0
         if worst > _POSE_UNIT_EXACT:
-            scale = math.sqrt(poses[i, 3] ** 2 + poses[i, 4] ** 2 + poses[i, 5] ** 2
-                              + poses[i, 6] ** 2)
+            scale = math.sqrt(float(poses[i, 3]) ** 2 + float(poses[i, 4]) ** 2
+                              + float(poses[i, 5]) ** 2 + float(poses[i, 6]) ** 2)
         for k in range(7):
-            v = poses[i, k] / scale if k >= 3 else poses[i, k]
-            out[i, k] = np.float32(v)
+            v = float(poses[i, k])
+            out[i, k] = np.float32(v / scale if k >= 3 else v)
     return True
 
 
-def device_poses(poses: NDArray[np.float64], labels: Sequence[str] | None = None,
+def device_poses(poses: NDArray[np.floating], labels: Sequence[str] | None = None,
                  ) -> NDArray[np.float64]:
     """(D, 7) position + quaternion rows -> a new array with normalised quaternions, each
     value the float32 it travels as (``checked_poses``).
@@ -266,8 +269,10 @@ def device_poses(poses: NDArray[np.float64], labels: Sequence[str] | None = None
     """
     out = np.empty((poses.shape[0], 7))  # new: the wire buffer is read-only, and callers
     if not checked_poses(poses, out):  # keep their arrays
-        check_positions(poses[:, :3], labels)
-        q = poses[:, 3:]
+        with np.errstate(invalid="ignore"):  # float32 rows: widened to say what is wrong
+            wide = np.asarray(poses, dtype=np.float64)
+        check_positions(wide[:, :3], labels)
+        q = wide[:, 3:]
         _explain_quaternions(q, np.einsum("ij,ij->i", q, q), labels)
     return out
 
