@@ -18,7 +18,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from posecast.client.viewer.camera import Camera
 from posecast.solver import rotations as R
@@ -85,7 +85,7 @@ def vive_setup(ipd: float = VIVE_IPD_M) -> EyeSetup:
     return EyeSetup(*VIVE_RECOMMENDED_SIZE, projection, eye_to_head)
 
 
-def pose_matrix(position: NDArray[np.floating], rotation: NDArray[np.floating]) -> Array:
+def pose_matrix(position: ArrayLike, rotation: ArrayLike) -> Array:
     """The 4x4 device-to-world matrix of a pose (position, quaternion x y z w)."""
     m = np.eye(4)
     m[:3, :3] = R.to_matrix(np.asarray(rotation, dtype=np.float64))

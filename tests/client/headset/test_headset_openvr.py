@@ -39,6 +39,7 @@ from openvr_fake import (
 from posecast.client.builtin import builtin_motion_path
 from posecast.client.headset.compositor import Compositor
 from posecast.client.headset.displays import CompositorDisplay
+from posecast.client.headset.room import hud_anchor
 from posecast.client.headset.session import Headset
 from posecast.client.headset.stereo import heading_of, headset_from_device
 from posecast.client.session.player import Player
@@ -273,7 +274,7 @@ def expected_camera(fake: FakeCompositor, head: NDArray[np.float64],
     e = openvr.Eye_Left if eye == 0 else openvr.Eye_Right
     eye_to_head = np.eye(4)
     eye_to_head[:3] = fake.eye_to_head(e)
-    view = np.linalg.inv(head @ eye_to_head)
+    view = np.asarray(np.linalg.inv(head @ eye_to_head), dtype=np.float64)
     return view, d3d_projection(*fake.eye_tangents(e), 0.02, 100.0)
 
 
@@ -413,6 +414,12 @@ def test_the_mirror_shows_the_whole_avatar_head_and_all() -> None:
         px, front = project(vertices, view, projection)
         ys, _ = np.nonzero(mask)
         assert abs(px[front, 1].min() - ys.min()) <= 2.0
+        # the HUD: white text just above where its anchor (ahead, below the eyes) lands
+        c, ok = project(hud_anchor(head)[None, :], view, projection)
+        assert ok[0] and inside(c[0])
+        x, y = round(float(c[0, 0])), round(float(c[0, 1]))
+        box = shot.eyes[eye][max(y - 60, 0):y, max(x - 80, 0):x + 80]
+        assert (box.min(axis=2) > 200).sum() > 30, f"eye {eye}: no HUD text"
 
 
 def test_another_player_standing_in_front_is_drawn_where_they_stand() -> None:

@@ -219,3 +219,30 @@ def test_the_mirror_is_drawn_only_when_an_eye_sees_its_face() -> None:
         mirror.release()
     finally:
         ctx.release()
+
+
+def test_the_hud_says_the_countdown_then_the_connection(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """What the headset's HUD reads (PlayerLink.status): connecting, a line the terminal
+    says (the T-pose countdown, a lost connection) for NOTE_S, then the room's state."""
+    from types import SimpleNamespace
+
+    from posecast.client.headset import session as headset_session
+    from posecast.client.session.player import Player
+
+    t = [100.0]
+    monkeypatch.setattr(headset_session, "now", lambda: t[0])
+    source = BvhSource(builtin_motion_path())
+    player = Player("ws://127.0.0.1:9", "lobby", "ana", source)
+    link = headset_session.PlayerLink(player, None)
+    assert link.status == "connecting to ws://127.0.0.1:9"
+    link.say("stand in a T-pose, arms out sideways: calibrating in 3 s")
+    assert link.status == "stand in a T-pose, arms out sideways: calibrating in 3 s"
+    t[0] += headset_session.NOTE_S + 0.1  # the line has had its time
+    player.session = SimpleNamespace()  # type: ignore[assignment]  # connected
+    assert link.status == "room lobby: stand in a T-pose"
+    assert player.on_calibration is not None
+    player.on_calibration(source.calibration())  # the T-pose went out
+    assert link.status == "room lobby: streaming" and link.tpose is not None
+    player.stats.reconnects = 2
+    assert link.status == "room lobby: streaming, 2 reconnects"
