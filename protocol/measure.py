@@ -114,6 +114,17 @@ def bytes_per_avatar_frame(num_joints: int = MAKEHUMAN_JOINTS, avatars: int = 16
     return (full - empty) / avatars
 
 
+def spectator_bytes_per_s(players: int, rate_hz: float = 90.0,
+                          num_joints: int = MAKEHUMAN_JOINTS) -> float:
+    """What one spectator of a room of ``players`` receives a second: a batch of every
+    avatar per tick, each in a websocket frame (2 bytes of header under 126 bytes of
+    payload, 4 under 64 KiB: the server's frames are unmasked); TCP/IP's own headers not
+    counted."""
+    payload = len(encode(sample_avatar_batch(players, num_joints)))
+    header = 2 if payload < 126 else 4 if payload < 65536 else 10
+    return (payload + header) * rate_hz
+
+
 def time_decode_tracker_frame(runs: int = 20000,
                               roles: tuple[DeviceRole, ...] = VIVE_RIG,
                               model: bool = False) -> Timing:

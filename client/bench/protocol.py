@@ -13,6 +13,7 @@ from posecast.protocol import (
 from posecast.protocol.measure import (
     MAKEHUMAN_JOINTS,
     bytes_per_avatar_frame,
+    spectator_bytes_per_s,
     time_avatar_batch,
     time_decode_tracker_frame,
     tracker_frame_bytes,
@@ -36,6 +37,9 @@ def bench_protocol() -> dict[str, object]:
     position_um, rotation_deg = tracker_frame_error()
     return {"joints": MAKEHUMAN_JOINTS,
             "bytes_per_avatar_frame": round(bytes_per_avatar_frame(), 1),
+            # a spectator's downlink at 90 Hz, of a room of 4 and of 16 players
+            "spectator_bytes_per_s": {str(n): round(spectator_bytes_per_s(n))
+                                      for n in (4, 16)},
             "tracker_frame_bytes": tracker_frame_bytes(),
             "tracker_frame_float32_worst": {"position_um": round(position_um, 3),
                                             "rotation_deg": float(f"{rotation_deg:.2g}")},

@@ -10,6 +10,7 @@ from posecast.protocol import BYTES_PER_ROTATION
 from posecast.protocol.measure import (
     MAKEHUMAN_JOINTS,
     bytes_per_avatar_frame,
+    spectator_bytes_per_s,
     time_calls,
     time_decode_tracker_frame,
     tracker_frame_bytes,
@@ -79,3 +80,16 @@ def test_float32_poses_cost_under_a_micrometre_and_a_hundred_thousandth_of_a_deg
     position_um, rotation_deg = tracker_frame_error(100_000)
     assert 0.0 < position_um <= 0.83
     assert 0.0 < rotation_deg < 1e-5
+
+
+def test_a_spectators_downlink_is_a_batch_a_tick_with_its_frame_header() -> None:
+    from posecast.protocol import encode
+    from posecast.protocol.measure import sample_avatar_batch
+
+    for players in (1, 4, 16):
+        payload = len(encode(sample_avatar_batch(players, MAKEHUMAN_JOINTS)))
+        header = 2 if payload < 126 else 4
+        assert spectator_bytes_per_s(players) == (payload + header) * 90.0
+    # each avatar adds its bytes per avatar-frame, 90 times a second
+    grown = spectator_bytes_per_s(16) - spectator_bytes_per_s(4)
+    assert grown == pytest.approx(12 * bytes_per_avatar_frame() * 90.0, rel=0.01)
