@@ -71,9 +71,11 @@ PROBES_JOIN_S = 30.0  # for a process's probes to be in the room with synced clo
 # little (counting bytes), and one that falls behind shows as the servers' dropped frames
 LOAD_NICENESS = 10
 SWEEP_S = 0.02  # between a load process's reads of its sockets: ~2 batches each
-# every spectator comes from this machine's one address: the caps on connections, there
-# against a flood from one host, would be what the bench measures
-LIMITS = ServerLimits(connections=100_000, connections_per_address=100_000)
+# every spectator comes from this machine's one address: the caps on connections and
+# on an address's joins (issue 27: 128 at once, then 8 a second), there against a flood
+# from one host, would be what the bench measures
+LIMITS = ServerLimits(connections=100_000, connections_per_address=100_000,
+                      address_joins_per_s=100_000.0, address_join_burst=100_000)
 
 
 class ByteCounter:
@@ -123,7 +125,8 @@ async def _join_counting(url: str, name: str) -> Any:
 
 def _load_process(pipe: Connection, url: str, count: int, core: int | None) -> None:
     """``count`` counting spectators of the server at ``url``: report when all joined,
-    wait for the word, report the bytes each received and close."""
+    wait for the word, report the bytes each received and over how many seconds, and
+    close."""
     from posecast.server.serving import install_fast_loop
 
     install_fast_loop()
@@ -145,11 +148,12 @@ def _load_process(pipe: Connection, url: str, count: int, core: int | None) -> N
         for ws in ok:
             counter.add(ws.transport.get_extra_info("socket").fileno())
         pipe.send(("joined", len(ok), str(failed[0]) if failed else ""))
+        t_start = time.monotonic()
         while not pipe.poll(SWEEP_S):
             counter.sweep()
         pipe.recv()
         counter.sweep()
-        pipe.send(counter.bytes)
+        pipe.send((counter.bytes, time.monotonic() - t_start))
         for ws in ok:
             ws.transport.abort()
 
@@ -255,11 +259,15 @@ class Step:
     p99_ms: list[float]  # each process's probes: capture to spectator
     lost: list[float]  # each process's share of the players' frames its spectators missed
     held: bool
+    # what a load spectator received a second (median over them; None: no load ones)
+    bytes_per_s_per_spectator: float | None = None
 
     def as_json(self) -> dict[str, object]:
+        rate = self.bytes_per_s_per_spectator
         return {"processes": self.processes, "spectators": self.spectators,
                 "capture_to_spectator_p99_ms": [round(p, 3) for p in self.p99_ms],
-                "lost": [round(d, 4) for d in self.lost], "held": self.held}
+                "lost": [round(d, 4) for d in self.lost], "held": self.held,
+                "bytes_per_s_per_spectator": None if rate is None else round(rate)}
 
 
 def _expect(pipe: Connection, what: str, timeout: float) -> Any:
@@ -284,14 +292,17 @@ def _step(service: Service, spectators: int, seconds: float, budget_ms: float | 
                 if (word := _expect(pipe, "the probes did not join", 60)) != "joined":
                     raise RuntimeError(word)
             p99, lost = _measure(urls, shares, probes, seconds)
+        rates: list[float] = []
         for pipe in loads:
             pipe.send("stop")
-            received = _expect(pipe, "a load process did not answer", 30)
+            received, seconds_counted = _expect(pipe, "a load process did not answer", 30)
             if received and min(received) == 0:  # a socket the server no longer fed
                 raise RuntimeError("a load spectator received nothing during the step")
+            rates += [n / seconds_counted for n in received if seconds_counted > 0]
     held = all(d <= MAX_LOST for d in lost) and (
         budget_ms is None or all(p <= budget_ms for p in p99))
-    return Step(len(urls), spectators, p99, lost, held)
+    rate = statistics.median(rates) if rates else None
+    return Step(len(urls), spectators, p99, lost, held, rate)
 
 
 def _measure(urls: list[str], shares: list[int], probes: list[Connection],
@@ -459,6 +470,10 @@ def bench_fanout(process_counts: list[int], players: int = 4, start: int = 200,
             "ratios": [r[k] for r in ratios],
             "capture_to_spectator_p99_ms": ([round(p, 3) for p in best.p99_ms]
                                             if best else None),
+            # what each of them received a second at that count (the load spectators')
+            "bytes_per_s_per_spectator": (
+                None if best is None or best.bytes_per_s_per_spectator is None
+                else round(best.bytes_per_s_per_spectator)),
             "steps": [[s.as_json() for s in run[k]] for run in runs]})
     return {"players": players, "budget_ms": budget_ms, "max_lost": MAX_LOST,
             "repeat": repeat, "results": results}
@@ -478,13 +493,16 @@ def format_fanout_table(doc: dict[str, Any]) -> str:
              + f"), {doc['players']} players at 90 Hz on process 1"
              + (f"; medians of {runs} runs" if runs > 1 else "") + ":",
              f"{'processes':>9}  {'spectators':>10}  {'per process':>11}  {'x one':>6}  "
-             f"{'p99 ms (each process)':>21}" + ("  runs (x one)" if runs > 1 else "")]
+             f"{'p99 ms (each process)':>21}  {'Mbit/s each':>11}"
+             + ("  runs (x one)" if runs > 1 else "")]
     for r in doc["results"]:
         p99 = r["capture_to_spectator_p99_ms"]
+        rate = r.get("bytes_per_s_per_spectator")
         line = (f"{r['processes']:>9}  {r['spectators']:>10}  "
                 f"{r['spectators'] // r['processes']:>11}  "
                 f"{r['ratio'] if r['ratio'] is not None else '-':>6}  "
-                f"{', '.join(f'{p:.1f}' for p in p99) if p99 else '-':>21}")
+                f"{', '.join(f'{p:.1f}' for p in p99) if p99 else '-':>21}  "
+                f"{f'{rate * 8 / 1e6:.2f}' if rate is not None else '-':>11}")
         if runs > 1:
             line += "  " + ", ".join(f"{c} ({x if x is not None else '-'})"
                                      for c, x in zip(r["runs"], r["ratios"], strict=True))
@@ -495,6 +513,8 @@ def format_fanout_table(doc: dict[str, Any]) -> str:
 def format_step(step: Step) -> str:
     p99 = ", ".join(f"{p:.1f}" for p in step.p99_ms)
     lost = ", ".join(f"{100 * d:.1f}%" for d in step.lost)
+    rate = step.bytes_per_s_per_spectator
+    per = f", {rate * 8 / 1e6:.2f} Mbit/s each" if rate is not None else ""
     return (f"{step.processes} process{'es' if step.processes > 1 else ''}, "
-            f"{step.spectators:>5} spectators: p99 {p99} ms, lost {lost} -> "
+            f"{step.spectators:>5} spectators: p99 {p99} ms, lost {lost}{per} -> "
             f"{'held' if step.held else 'not held'}")
