@@ -230,7 +230,7 @@ class _DevicePoses(Model):
     @classmethod
     def _poses(cls, value: Any, info: ValidationInfo) -> Array:
         roles = info.data.get("roles")
-        if isinstance(value, bytes) and len(value) % 28 == 0:  # the wire's float32 rows
+        if isinstance(value, bytes) and len(value) % _POSE_ROW_BYTES == 0:  # float32 rows
             poses: NDArray[np.floating] = np.frombuffer(value, "<f4").reshape(-1, 7)
         else:
             poses = as_rows(value, 7, is_wire(info), "<f4")
