@@ -3,7 +3,8 @@
 A message is a msgpack map of its fields with a string ``type``; nested records (the
 avatars of a roster, the frames of a batch) are maps without one. Float arrays are msgpack
 bin (tracker poses float32, their roles device indices; skeleton offsets float64; an
-avatar's root float32), joint rotations 5 bytes each (protocol.quantize). ``decode``
+avatar's root float32), joint rotations as each avatar's roster coding packs them
+(protocol.pose_coding; none: 5 bytes each, protocol.quantize). ``decode``
 checks the size before parsing and raises only ``ProtocolError``, whatever the bytes.
 """
 
@@ -29,11 +30,13 @@ from posecast.protocol.messages import (
     role_indices,
     tracker_poses_from_wire,
 )
+from posecast.protocol.pose_coding import Codings, RosterCodings, pack_batch
 from posecast.protocol.validation import (
     MAX_CLIENT_MESSAGE_BYTES,
     MAX_MESSAGE_BYTES,
     _short_repr,
     checked_poses,
+    pose_wire,
     protocol_error,
     safe_text,
 )
@@ -42,15 +45,28 @@ _WIRE = {"wire": True}  # validation context: arrays must arrive as bytes
 _CLIENT_TYPES = frozenset(cls.model_fields["type"].default for cls in CLIENT_MESSAGES)
 
 
-def encode(message: BaseModel) -> bytes:
-    """A message -> msgpack bytes."""
-    return msgpack.packb(message.model_dump(), use_bin_type=True)
+def encode(message: BaseModel, codings: Codings | None = None) -> bytes:
+    """A message -> msgpack bytes. An AvatarBatch's rotations are packed as ``codings``
+    (avatar id -> its roster's PoseCoding) say; without one, 5 bytes a joint."""
+    context = {"codings": codings} if codings is not None else None
+    return msgpack.packb(message.model_dump(context=context), use_bin_type=True)
 
 
 def decode(data: bytes | bytearray | memoryview | str, *,
-           max_bytes: int = MAX_MESSAGE_BYTES) -> Message:
-    """msgpack bytes -> a validated message. Raises ProtocolError and nothing else."""
-    return _decode(data, max_bytes, None)  # type: ignore[return-value]
+           max_bytes: int = MAX_MESSAGE_BYTES, codings: Codings | None = None) -> Message:
+    """msgpack bytes -> a validated message. Raises ProtocolError and nothing else. An
+    AvatarBatch is unpacked with ``codings``, the rosters' (``RosterCodings`` keeps them
+    for a stream of messages)."""
+    return _decode(data, max_bytes, None, codings)  # type: ignore[return-value]
+
+
+def decode_stream(data: bytes | bytearray | memoryview | str, codings: RosterCodings, *,
+                  max_bytes: int = MAX_MESSAGE_BYTES) -> Message:
+    """``decode`` one message of a stream (a connection, a recording): its batches
+    unpacked with the codings its rosters gave, which it learns from as it goes."""
+    message = decode(data, max_bytes=max_bytes, codings=codings)
+    codings.learn(message)
+    return message
 
 
 def decode_client(data: bytes | bytearray | memoryview | str) -> ClientMessage:
@@ -72,7 +88,8 @@ def decode_tracker_poses(data: bytes | bytearray | memoryview) -> TrackerPoses |
     return tracker_poses_from_wire(obj) if type(obj) is dict else None
 
 
-def _decode(data: Any, max_bytes: int, allowed: frozenset[str] | None) -> BaseModel:
+def _decode(data: Any, max_bytes: int, allowed: frozenset[str] | None,
+            codings: Codings | None = None) -> BaseModel:
     if isinstance(data, str):  # websockets hands a text frame over as str
         raise ProtocolError(ErrorCode.NOT_MSGPACK,
                             "got a text frame; messages are binary msgpack")
@@ -100,11 +117,12 @@ def _decode(data: Any, max_bytes: int, allowed: frozenset[str] | None) -> BaseMo
                             f"type: unknown message type {_short(kind)}; expected one of "
                             f"{', '.join(known)}")
     if cls is AvatarBatch:  # the hot path of every viewer: checked whole when well-formed
-        batch = avatar_batch_from_wire(obj)
+        batch = avatar_batch_from_wire(obj, codings)
         if batch is not None:
             return batch
     try:
-        return cls.model_validate(obj, context=_WIRE)
+        return cls.model_validate(obj, context=_WIRE if codings is None
+                                  else {"wire": True, "codings": codings})
     except ValidationError as exc:
         raise protocol_error(exc, kind) from None  # type: ignore[arg-type]
 
@@ -116,12 +134,14 @@ def _short(value: object) -> str:
 def encode_avatar_batch(avatar_ids: Sequence[int], seqs: Sequence[int], roots: NDArray[Any],
                         rotations: NDArray[Any], t_capture: Sequence[float],
                         t_server_receive: Sequence[float], t_solved: float,
-                        t_sent: float, lost: Sequence[int] | int = 0) -> bytes:
-    """An AvatarBatch's bytes straight from the solver's arrays (B, 3) and (B, J, 4).
+                        t_sent: float, lost: Sequence[int] | int = 0,
+                        codings: Codings | None = None) -> bytes:
+    """An AvatarBatch's bytes straight from the solver's arrays (B, 3) and (B, J, 4),
+    each avatar's rotations packed as ``codings`` say.
 
-    The server's hot path: the same bytes as ``encode(AvatarBatch.from_arrays(...))``
-    (a test holds them equal) without the checks meant for input from outside. The
-    arrays come from the solver: only shapes and finiteness are checked.
+    The server's hot path: the same bytes as ``encode(AvatarBatch.from_arrays(...),
+    codings)`` (a test holds them equal) without the checks meant for input from
+    outside. The arrays come from the solver: only shapes and finiteness are checked.
     """
     roots = np.asarray(roots, dtype=np.float64)
     rotations = np.asarray(rotations, dtype=np.float64)
@@ -132,7 +152,8 @@ def encode_avatar_batch(avatar_ids: Sequence[int], seqs: Sequence[int], roots: N
                          f"rotations {rotations.shape}")
     if not (np.isfinite(roots).all() and np.isfinite(rotations).all()):
         raise ValueError("encode_avatar_batch: roots and rotations must be finite")
-    wire = avatar_batch_wire(avatar_ids, seqs, roots, rotations.shape[1], rotations,
+    wire = avatar_batch_wire(avatar_ids, seqs, roots, rotations.shape[1],
+                             pack_batch(list(avatar_ids), rotations, codings),
                              t_capture, t_server_receive, t_solved, t_sent, lost)
     return msgpack.packb(wire, use_bin_type=True)
 
@@ -156,7 +177,6 @@ def encode_tracker_frame(seq: int, roles: Sequence[str], poses: NDArray[Any],
     except KeyError:  # an unknown role: the message says which
         return encode(TrackerFrame(seq=seq, roles=tuple(roles), poses=poses,  # type: ignore[arg-type]
                                    t_capture=t_capture, clock_offset=clock_offset))
-    wire = checked.astype("<f4")  # the float32 values checked_poses rounded to
-    return msgpack.packb({"roles": indices, "poses": wire.tobytes(),
+    return msgpack.packb({"roles": indices, "poses": pose_wire(checked),
                           "t_capture": float(t_capture), "clock_offset": float(clock_offset),
                           "type": "tracker_frame", "seq": int(seq)}, use_bin_type=True)

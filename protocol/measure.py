@@ -22,6 +22,7 @@ from posecast.protocol.codec import (
     encode_avatar_batch,
 )
 from posecast.protocol.messages import AvatarBatch, TrackerFrame
+from posecast.protocol.pose_coding import PoseCoding
 from posecast.protocol.roles import DEVICE_ROLES, DeviceRole
 
 # what a tracker frame is measured with: a full Vive rig, the ten roles of the paper
@@ -82,7 +83,8 @@ def sample_avatar_batch(avatars: int, num_joints: int = MAKEHUMAN_JOINTS,
 
 def tracker_frame_error(samples: int = 1_000_000, reach_m: float = 10.0,
                         seed: int = 0) -> tuple[float, float]:
-    """What protocol 3's float32 poses cost: the largest position error (micrometres,
+    """What the uplink's encoding costs (protocol 4: float32 positions, int16 quaternion
+    components): the largest position error (micrometres,
     positions anywhere within ``reach_m``) and rotation error (degrees) of ``samples``
     random device poses against what the server reads back (``checked_poses``)."""
     from posecast.protocol.validation import checked_poses
@@ -107,20 +109,32 @@ def tracker_frame_bytes(roles: tuple[DeviceRole, ...] = VIVE_RIG) -> int:
     return len(encode(sample_tracker_frame(roles)))
 
 
-def bytes_per_avatar_frame(num_joints: int = MAKEHUMAN_JOINTS, avatars: int = 16) -> float:
-    """Wire bytes one avatar adds to a batch of ``avatars`` (batch header excluded)."""
-    full = len(encode(sample_avatar_batch(avatars, num_joints)))
+def _codings(avatars: int, coding: PoseCoding | None) -> dict[int, PoseCoding | None]:
+    return {i: coding for i in range(avatars)}
+
+
+def bytes_per_avatar_frame(num_joints: int = MAKEHUMAN_JOINTS, avatars: int = 16,
+                           coding: PoseCoding | None = None) -> float:
+    """Wire bytes one avatar adds to a batch of ``avatars`` (batch header excluded),
+    packed by ``coding`` (protocol 4's, from the roster), else every joint in 5 bytes."""
+    if coding is not None:
+        num_joints = coding.num_joints
+    full = len(encode(sample_avatar_batch(avatars, num_joints), _codings(avatars, coding)))
     empty = len(encode(AvatarBatch.from_frames([], t_sent=0.0)))
     return (full - empty) / avatars
 
 
 def spectator_bytes_per_s(players: int, rate_hz: float = 90.0,
-                          num_joints: int = MAKEHUMAN_JOINTS) -> float:
+                          num_joints: int = MAKEHUMAN_JOINTS,
+                          coding: PoseCoding | None = None) -> float:
     """What one spectator of a room of ``players`` receives a second: a batch of every
     avatar per tick, each in a websocket frame (2 bytes of header under 126 bytes of
     payload, 4 under 64 KiB: the server's frames are unmasked); TCP/IP's own headers not
-    counted."""
-    payload = len(encode(sample_avatar_batch(players, num_joints)))
+    counted. ``coding``: as ``bytes_per_avatar_frame``."""
+    if coding is not None:
+        num_joints = coding.num_joints
+    payload = len(encode(sample_avatar_batch(players, num_joints),
+                         _codings(players, coding)))
     header = 2 if payload < 126 else 4 if payload < 65536 else 10
     return (payload + header) * rate_hz
 
@@ -140,9 +154,13 @@ def time_decode_tracker_frame(runs: int = 20000,
 
 
 def time_avatar_batch(avatars: int = 16, num_joints: int = MAKEHUMAN_JOINTS,
-                      runs: int = 2000) -> dict[str, Timing]:
+                      runs: int = 2000, coding: PoseCoding | None = None
+                      ) -> dict[str, Timing]:
     """Server side: encode a batch from the solver's arrays (``encode_avatar_batch``, as
-    the server does); viewer side: decode + validate it."""
+    the server does); viewer side: decode + validate it. ``coding``: every avatar's."""
+    if coding is not None:
+        num_joints = coding.num_joints
+    codings = _codings(avatars, coding)
     batch = sample_avatar_batch(avatars, num_joints)
     rng = np.random.default_rng(1)
     roots = rng.uniform(-2.0, 2.0, (avatars, 3))
@@ -151,8 +169,9 @@ def time_avatar_batch(avatars: int = 16, num_joints: int = MAKEHUMAN_JOINTS,
     times = [1.7e9] * avatars
 
     def build_and_encode() -> bytes:
-        return encode_avatar_batch(ids, ids, roots, rotations, times, times, 1.7e9, 1.7e9)
+        return encode_avatar_batch(ids, ids, roots, rotations, times, times, 1.7e9, 1.7e9,
+                                   codings=codings)
 
-    data = encode(batch)
+    data = encode(batch, codings)
     return {"build_encode": time_calls(build_and_encode, runs),
-            "decode": time_calls(lambda: decode(data), runs)}
+            "decode": time_calls(lambda: decode(data, codings=codings), runs)}

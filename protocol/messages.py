@@ -42,11 +42,13 @@ from pydantic_core import PydanticCustomError
 
 from posecast.protocol.batch import AvatarBatch, AvatarFrame
 from posecast.protocol.model import Model, first_duplicate
+from posecast.protocol.pose_coding import PoseCoding
 from posecast.protocol.roles import CALIBRATION_ROLES, DEVICE_ROLES, DeviceRole
 from posecast.protocol.validation import (
     MAX_AVATARS,
     MAX_INT,
     MAX_JOINTS,
+    POSE_QUAT_SCALE,
     Int,
     Name,
     RateHz,
@@ -56,18 +58,21 @@ from posecast.protocol.validation import (
     Token,
     as_rows,
     check_positions,
-    checked_poses,
+    checked_wire_poses,
     device_poses,
     is_wire,
+    pose_wire,
     readonly,
     time_column,
 )
 
 # 2: rosters name each avatar's devices, batches say which of them are lost (any
 # tracker set); 3: tracker frames and calibrations carry float32 poses and their roles
-# as indices into DEVICE_ROLES (745 -> ~340 bytes for 11 devices). An older peer is
-# refused with a clear error
-PROTOCOL_VERSION = 3
+# as indices into DEVICE_ROLES (745 -> ~340 bytes for 11 devices); 4: a roster gives each
+# solved avatar a PoseCoding and its frames carry only its driven joints, packed by
+# their limits (protocol.pose_coding), and their times as float32 ages before t_sent
+# (319 -> ~115 bytes an avatar-frame). An older peer is refused with a clear error
+PROTOCOL_VERSION = 4
 SUPPORTED_VERSIONS = frozenset({PROTOCOL_VERSION})
 
 Array = NDArray[np.float64]
@@ -132,6 +137,9 @@ class AvatarInfo(Model):
     # the devices that drive it (its player's tracker set, grown by devices switched on
     # later); AvatarBatch.lost says which of them are lost now
     devices: tuple[DeviceRole, ...] = Field(default=(), max_length=len(DEVICE_ROLES))
+    # how its frames carry its rotations; None (a recording's or a replay's avatar): every
+    # joint, 5 bytes each
+    coding: PoseCoding | None = None
 
     @field_validator("rest_offsets", mode="plain")
     @classmethod
@@ -156,6 +164,9 @@ class AvatarInfo(Model):
         dup = first_duplicate(self.devices)
         if dup is not None:
             raise ValueError(f"devices: {dup!r} appears twice")
+        if self.coding is not None and self.coding.num_joints != n:
+            raise ValueError(f"coding: rest has {self.coding.num_joints} rows for {n} "
+                             f"joints")
         # parents first, one root: the order forward kinematics walks (solver.Skeleton)
         if self.parents[0] != -1:
             raise ValueError(f"parents[0] is {self.parents[0]}: joint 0 must be the root (-1)")
@@ -189,13 +200,14 @@ class AvatarRoster(Model):
 class _DevicePoses(Model):
     """Poses of tracked devices: one row per role, position (3) + quaternion x y z w (4).
 
-    On the wire (protocol 3) the roles are indices into DEVICE_ROLES and the poses
-    packed little-endian float32; in Python the roles are names and the poses float64
-    holding those float32 values (``checked_poses``), so a message round-trips exactly.
+    On the wire (protocol 4) the roles are indices into DEVICE_ROLES and the poses
+    packed little-endian: every position as float32, then every quaternion as int16
+    levels k = round(q 32767); in Python the roles are names and the poses float64
+    holding those values (``checked_poses``), so a message round-trips exactly.
     """
 
     roles: tuple[DeviceRole, ...] = Field(min_length=1, max_length=len(DEVICE_ROLES))
-    poses: Array  # (D, 7) float32 values; positions in metres, quaternions normalised
+    poses: Array  # (D, 7) positions in metres (float32), quaternions (k / 32767)
     t_capture: Time  # client clock, seconds: when the poses were read
     clock_offset: Time  # the client's estimate of server clock - client clock
 
@@ -230,17 +242,27 @@ class _DevicePoses(Model):
     @classmethod
     def _poses(cls, value: Any, info: ValidationInfo) -> Array:
         roles = info.data.get("roles")
-        if isinstance(value, bytes) and len(value) % _POSE_ROW_BYTES == 0:  # float32 rows
-            poses: NDArray[np.floating] = np.frombuffer(value, "<f4").reshape(-1, 7)
+        if isinstance(value, bytes | bytearray | memoryview):
+            if len(value) % _POSE_ROW_BYTES:
+                raise ValueError(f"{len(value)} bytes is not a whole number of poses "
+                                 f"({_POSE_ROW_BYTES} bytes each: 3 x <f4, 4 x <i2)")
+            n = len(value) // _POSE_ROW_BYTES
+            poses: NDArray[np.floating] = np.empty((n, 7))
+            poses[:, :3] = np.frombuffer(value, "<f4", 3 * n).reshape(n, 3)
+            poses[:, 3:] = np.frombuffer(value, "<i2", 4 * n, 12 * n).reshape(n, 4) \
+                / POSE_QUAT_SCALE
+        elif is_wire(info):
+            raise ValueError(f"expected packed poses (3 x <f4, 4 x <i2 each), got "
+                             f"{type(value).__name__}")
         else:
-            poses = as_rows(value, 7, is_wire(info), "<f4")
+            poses = as_rows(value, 7, False)
         if roles is not None and len(roles) != poses.shape[0]:
             raise ValueError(f"{poses.shape[0]} pose rows for {len(roles)} roles")
         return readonly(device_poses(poses, roles))
 
     @field_serializer("poses")
     def _poses_wire(self, poses: Array) -> bytes:
-        return np.ascontiguousarray(poses, dtype="<f4").tobytes()
+        return pose_wire(poses)
 
     @property
     def t_capture_server(self) -> float:
@@ -282,7 +304,7 @@ class TrackerPoses(NamedTuple):
 
 
 _TRACKER_FIELDS = frozenset(TrackerFrame.model_fields)
-_POSE_ROW_BYTES = 7 * 4  # position | quaternion, little-endian float32
+_POSE_ROW_BYTES = 3 * 4 + 4 * 2  # a position's float32, a quaternion's int16 levels
 _ROLE_INDEX: dict[str, int] = {role: i for i, role in enumerate(DEVICE_ROLES)}
 _INT_ONLY = {int}
 
@@ -326,8 +348,10 @@ def tracker_poses_from_wire(obj: dict[str, Any]) -> TrackerPoses | None:
     role_tuple = _role_names(tuple(roles))
     if role_tuple is None:
         return None
-    poses = np.empty((len(roles), 7))
-    if not checked_poses(np.frombuffer(data, "<f4").reshape(-1, 7), poses):
+    n = len(roles)
+    poses = np.empty((n, 7))
+    if not checked_wire_poses(np.frombuffer(data, "<f4", 3 * n),
+                              np.frombuffer(data, "<i2", 4 * n, 12 * n), poses):
         return None
     return TrackerPoses(seq, role_tuple, readonly(poses), t_capture, clock_offset)
 

@@ -42,6 +42,50 @@ MAX_ANGLE_ERROR_DEG = math.degrees(MAX_ANGLE_ERROR_RAD)
 _MAX_KEPT_SQUARES = 0.75 + 1e-3
 
 
+@njit(cache=True, inline="always")
+def quat_word(x: float, y: float, z: float, w: float) -> int:
+    """One quaternion's 38 bits (the module's layout): also a PoseCoding's quaternion."""
+    q = (x, y, z, w)
+    largest = 0
+    for i in range(1, 4):
+        if abs(q[i]) > abs(q[largest]):
+            largest = i  # the first of equal magnitudes, as np.argmax
+    inv_norm = 1.0 / math.sqrt(x * x + y * y + z * z + w * w)
+    # normalise, and flip so that the dropped (largest) component is positive
+    scale = -inv_norm if q[largest] < 0.0 else inv_norm
+    word = largest << 36
+    shift = 24
+    for i in range(4):
+        if i == largest:
+            continue
+        k = math.floor(q[i] * scale * _SCALE + 0.5)
+        k = min(max(k, -_HALF), _HALF) + _HALF
+        word |= int(k) << shift
+        shift -= 12
+    return word
+
+
+@njit(cache=True, inline="always")
+def word_quat(word: int, out: NDArray[np.float64]) -> float:
+    """38 bits -> out (4,); returns the kept components' sum of squares, or minus it
+    when no unit quaternion has them."""
+    largest = word >> 36
+    squares = 0.0
+    shift = 24
+    for i in range(4):
+        if i == largest:
+            continue
+        c = (((word >> shift) & 0xFFF) - _HALF) * (1.0 / _SCALE)
+        out[i] = c
+        squares += c * c
+        shift -= 12
+    # (4095, which no encoder writes, decodes to just over 1/sqrt(2): harmless)
+    if squares > _MAX_KEPT_SQUARES:
+        return -squares
+    out[largest] = math.sqrt(1.0 - squares)
+    return squares
+
+
 # Compiled (numba): the server encodes and every spectator decodes ~850 rotations a batch
 # of 16, where numpy's dozen whole-array passes cost far more than one compiled pass.
 # Explicit signatures compile (or load from the cache) at import: a compile at the first
@@ -50,23 +94,7 @@ _MAX_KEPT_SQUARES = 0.75 + 1e-3
       cache=True)
 def _quantize(q: NDArray[np.float64], out: NDArray[np.uint8]) -> None:
     for j in range(q.shape[0]):
-        largest = 0
-        for i in range(1, 4):
-            if abs(q[j, i]) > abs(q[j, largest]):
-                largest = i  # the first of equal magnitudes, as np.argmax
-        inv_norm = 1.0 / math.sqrt(q[j, 0] * q[j, 0] + q[j, 1] * q[j, 1]
-                                   + q[j, 2] * q[j, 2] + q[j, 3] * q[j, 3])
-        # normalise, and flip so that the dropped (largest) component is positive
-        scale = -inv_norm if q[j, largest] < 0.0 else inv_norm
-        word = largest << 36
-        shift = 24
-        for i in range(4):
-            if i == largest:
-                continue
-            k = math.floor(q[j, i] * scale * _SCALE + 0.5)
-            k = min(max(k, -_HALF), _HALF) + _HALF
-            word |= int(k) << shift
-            shift -= 12
+        word = quat_word(q[j, 0], q[j, 1], q[j, 2], q[j, 3])
         for b in range(BYTES_PER_ROTATION):
             out[j * BYTES_PER_ROTATION + b] = (word >> (8 * b)) & 0xFF
 
@@ -83,20 +111,9 @@ def _dequantize(data: NDArray[np.uint8], out: NDArray[np.float64]
             word |= int(data[j * BYTES_PER_ROTATION + b]) << (8 * b)
         if word >> 38:
             return 1, j, 0.0
-        largest = word >> 36
-        squares = 0.0
-        shift = 24
-        for i in range(4):
-            if i == largest:
-                continue
-            c = (((word >> shift) & 0xFFF) - _HALF) * (1.0 / _SCALE)
-            out[j, i] = c
-            squares += c * c
-            shift -= 12
-        # (4095, which no encoder writes, decodes to just over 1/sqrt(2): harmless)
-        if squares > _MAX_KEPT_SQUARES:
-            return 2, j, squares
-        out[j, largest] = math.sqrt(1.0 - squares)
+        squares = word_quat(word, out[j])
+        if squares < 0.0:
+            return 2, j, -squares
     return 0, -1, 0.0
 
 

@@ -15,6 +15,9 @@ MAX_TOKEN_CHARS = 1024  # a signed join token (JWT, server.auth) is ~250-800 cha
 MAX_TEXT_CHARS = 1024  # error messages, leave reasons
 MAX_POSITION_M = 1000.0  # tracked spaces are metres across; 1e300 would overflow the solver
 MAX_RATE_HZ = 1000.0
+# a solved frame's times travel as float32 ages before its sending (protocol 4): a real
+# one is milliseconds old, a replayed one at most its recording's length
+MAX_AGE_S = 1e6
 QUAT_NORM_TOLERANCE = 1e-3  # |norm - 1| accepted, then normalised
 MAX_INT = 2**63 - 1  # ids and sequence numbers fit an int64
 

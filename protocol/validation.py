@@ -21,7 +21,9 @@ from numpy.typing import NDArray
 from pydantic import AfterValidator, Field, Strict, ValidationError, ValidationInfo
 
 from posecast.protocol.errors import ErrorCode, ProtocolError
-from posecast.protocol.quantize import BYTES_PER_ROTATION
+from posecast.protocol.sizes import (
+    MAX_AGE_S as MAX_AGE_S,
+)
 from posecast.protocol.sizes import (
     MAX_AVATARS as MAX_AVATARS,
 )
@@ -190,10 +192,12 @@ _MAX_POSITION2 = MAX_POSITION_M**2
 # normalised row can move it by an ulp, and decode(encode(m)) should give m back exactly.
 _NORM2_TOL = 2.0 * QUAT_NORM_TOLERANCE
 _UNIT_EXACT = 1e-12
-# Device poses travel as float32 (protocol 3): a row is kept as the float32 it travels
-# as, and a unit quaternion rounded to float32 is off unit by up to ~2.4e-7 in norm^2, so
-# rows within _POSE_UNIT_EXACT are not renormalised: decode(encode(m)) gives m exactly
-_POSE_UNIT_EXACT = 1e-6
+# Device poses travel as float32 positions and int16 quaternion components k = round(q
+# 32767) (protocol 4): a row is kept as the values it travels as. A unit quaternion's
+# components rounded so are off unit by at most ~6.2e-5 in norm^2, so rows within
+# _POSE_UNIT_EXACT are not renormalised: decode(encode(m)) gives m exactly
+POSE_QUAT_SCALE = 32767.0
+_POSE_UNIT_EXACT = 1e-4
 
 
 def check_positions(positions: NDArray[np.float64], labels: Sequence[str] | None = None,
@@ -228,17 +232,9 @@ def _explain_quaternions(q: NDArray[np.float64], norm2: NDArray[np.float64],
                      f"within {QUAT_NORM_TOLERANCE:g} is required")
 
 
-# read-only, any layout: writable arrays convert to it, wire buffers are it
-# float64 rows (a player's own arrays) or the float32 rows of a wire buffer, read as they
-# are: a numpy cast first cost a copy and, for NaN, a warning to silence (~3 us a frame)
-@njit([types.boolean(types.Array(dtype, 2, "A", readonly=True), types.float64[:, ::1])
-       for dtype in (types.float64, types.float32)], cache=True)
-def checked_poses(poses: NDArray[np.floating], out: NDArray[np.float64]) -> bool:
-    """Copy (D, 7) pose rows into ``out`` as the float32 they travel as, with normalised
-    quaternions (all rows, when any is off unit by more than _POSE_UNIT_EXACT), or return
-    False if a position is beyond MAX_POSITION_M or a quaternion off unit by more than
-    the tolerance (NaN fails both). Compiled: numpy took 6 us for this in small calls,
-    on every tracker frame."""
+@njit(cache=True)
+def _checked_rows(poses: NDArray[np.floating], out: NDArray[np.float64]) -> bool:
+    """``checked_poses``'s work, for any row type (it may write over ``poses``)."""
     worst = 0.0
     for i in range(poses.shape[0]):
         x, y, z = float(poses[i, 0]), float(poses[i, 1]), float(poses[i, 2])
@@ -253,16 +249,71 @@ def checked_poses(poses: NDArray[np.floating], out: NDArray[np.float64]) -> bool
         if worst > _POSE_UNIT_EXACT:
             scale = math.sqrt(float(poses[i, 3]) ** 2 + float(poses[i, 4]) ** 2
                               + float(poses[i, 5]) ** 2 + float(poses[i, 6]) ** 2)
-        for k in range(7):
-            v = float(poses[i, k])
-            out[i, k] = np.float32(v / scale if k >= 3 else v)
+        for k in range(3):
+            out[i, k] = np.float32(float(poses[i, k]))
+        for k in range(3, 7):
+            level = math.floor(float(poses[i, k]) / scale * POSE_QUAT_SCALE + 0.5)
+            out[i, k] = min(max(level, -POSE_QUAT_SCALE), POSE_QUAT_SCALE) / POSE_QUAT_SCALE
     return True
+
+
+# read-only, any layout: writable arrays convert to it, wire buffers are it
+# float64 rows (a player's own arrays) or float32 rows, read as they are: a numpy cast
+# first cost a copy and, for NaN, a warning to silence (~3 us a frame)
+@njit([types.boolean(types.Array(dtype, 2, "A", readonly=True), types.float64[:, ::1])
+       for dtype in (types.float64, types.float32)], cache=True)
+def checked_poses(poses: NDArray[np.floating], out: NDArray[np.float64]) -> bool:
+    """Copy (D, 7) pose rows into ``out`` as they travel (positions float32, quaternion
+    components int16 levels k / 32767), normalising the quaternions first (all rows, when
+    any is off unit by more than _POSE_UNIT_EXACT), or return False if a position is
+    beyond MAX_POSITION_M or a quaternion off unit by more than the tolerance (NaN fails
+    both). Compiled: numpy took 6 us for this in small calls, on every tracker frame."""
+    return _checked_rows(poses, out)
+
+
+@njit(types.boolean(types.Array(types.float32, 1, "C", readonly=True),
+                    types.Array(types.int16, 1, "C", readonly=True), types.float64[:, ::1]),
+      cache=True)
+def checked_wire_poses(positions: NDArray[np.float32], levels: NDArray[np.int16],
+                       out: NDArray[np.float64]) -> bool:
+    """A tracker frame's poses as they travel (positions (3D,) float32, quaternion levels
+    (4D,) int16) -> ``out`` (D, 7), checked exactly as ``checked_poses`` checks the same
+    numbers: one compiled pass, no array built on the way."""
+    rows = out.shape[0]
+    if positions.shape[0] != 3 * rows or levels.shape[0] != 4 * rows:
+        return False
+    for i in range(rows):
+        for k in range(3):
+            out[i, k] = float(positions[3 * i + k])
+        for k in range(4):
+            out[i, 3 + k] = float(levels[4 * i + k]) / POSE_QUAT_SCALE
+    return _checked_rows(out, out)
+
+
+def pose_wire(poses: NDArray[np.float64]) -> bytes:
+    """(D, 7) poses as they travel: the positions as float32, then the quaternions' int16
+    levels (rounded; clipped, and NaN as 0, for a tool that forges frames)."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        levels = np.clip(np.nan_to_num(np.rint(np.asarray(poses)[:, 3:] * POSE_QUAT_SCALE)),
+                         -32768, 32767).astype("<i2")
+        positions = np.ascontiguousarray(poses[:, :3], dtype="<f4")
+    return positions.tobytes() + levels.tobytes()
+
+
+def wire_pose_rows(data: bytes) -> NDArray[np.float64]:
+    """``pose_wire``'s bytes -> (D, 7) rows as they travel, unchecked (a tool that forges
+    frames changes them and writes them back)."""
+    n = len(data) // 20
+    rows = np.empty((n, 7))
+    rows[:, :3] = np.frombuffer(data, "<f4", 3 * n).reshape(n, 3)
+    rows[:, 3:] = np.frombuffer(data, "<i2", 4 * n, 12 * n).reshape(n, 4) / POSE_QUAT_SCALE
+    return rows
 
 
 def device_poses(poses: NDArray[np.floating], labels: Sequence[str] | None = None,
                  ) -> NDArray[np.float64]:
     """(D, 7) position + quaternion rows -> a new array with normalised quaternions, each
-    value the float32 it travels as (``checked_poses``).
+    value as it travels (``checked_poses``: float32 positions, int16 quaternion levels).
 
     The hot path of a server (every tracker frame): both checks in one compiled pass;
     on failure the row-by-row checks explain what was wrong.
@@ -304,38 +355,34 @@ _RO = {name: types.Array(dtype, 1, "C", readonly=True) for name, dtype in
 @njit(types.boolean(types.int64, types.int64, types.int64, types.float64, types.float64,
                     types.float64, types.float64, types.float64, types.float64), cache=True)
 def row_ok(avatar_id: int, seq: int, joints: int, x: float, y: float, z: float,
-           t_capture: float, t_server_receive: float, t_solved: float) -> bool:
+           capture_age: float, receive_age: float, solved_age: float) -> bool:
     """One AvatarBatch row as a spectator checks it: the one definition of a valid row,
     for the decoder (``batch_columns_ok``) and the server's last look before it sends
-    (``sendable_rows``). The root is the wire's (float32, widened): ids and seqs >= 0,
-    joints in 1..MAX_JOINTS, the root finite and within MAX_POSITION_M, times finite."""
+    (``sendable_rows``). The root and the times' ages before t_sent are the wire's
+    (float32, widened): ids and seqs >= 0, joints in 1..MAX_JOINTS, the root within
+    MAX_POSITION_M, the ages within MAX_AGE_S (NaN fails every comparison)."""
     return (avatar_id >= 0 and seq >= 0 and 1 <= joints <= MAX_JOINTS
-            and x * x + y * y + z * z <= _MAX_POSITION2  # NaN fails too
-            and math.isfinite(t_capture) and math.isfinite(t_server_receive)
-            and math.isfinite(t_solved))
+            and x * x + y * y + z * z <= _MAX_POSITION2
+            and abs(capture_age) <= MAX_AGE_S and abs(receive_age) <= MAX_AGE_S
+            and abs(solved_age) <= MAX_AGE_S)
 
 
-@njit(types.boolean(_RO["i8"], _RO["i8"], _RO["u2"], _RO["f8"], _RO["f4"], types.int64),
-      cache=True)
+@njit(types.boolean(_RO["i8"], _RO["i8"], _RO["u2"], _RO["f4"], _RO["f4"]), cache=True)
 def batch_columns_ok(ids: IntArray, seqs: IntArray, counts: NDArray[np.uint16],
-                     times: NDArray[np.float64], roots: NDArray[np.float32],
-                     rotation_bytes: int) -> bool:
-    """Every check of an AvatarBatch's packed columns but distinct ids and the rotations'
-    bits, in one compiled pass (numpy took a call per check): ``row_ok`` for each row
-    (``times``: the t_capture, t_server_receive and t_solved columns one after the
-    other), and joint counts adding up to the rotation bytes. Pass/fail only: the field
-    validators explain a failure."""
+                     ages: NDArray[np.float32], roots: NDArray[np.float32]) -> bool:
+    """Every check of an AvatarBatch's packed columns but distinct ids and the rotations
+    (``protocol.pose_coding.unpack_batch``), in one compiled pass (numpy took a call per
+    check): ``row_ok`` for each row (``ages``: the capture, receive and solved ages one
+    after the other). Pass/fail only: the field validators explain a failure."""
     n = ids.shape[0]
-    if times.shape[0] != 3 * n or roots.shape[0] != 3 * n:
+    if ages.shape[0] != 3 * n or roots.shape[0] != 3 * n:
         return False
-    total = 0
     for b in range(n):
         if not row_ok(ids[b], seqs[b], int(counts[b]), float(roots[3 * b]),
-                      float(roots[3 * b + 1]), float(roots[3 * b + 2]), times[b],
-                      times[n + b], times[2 * n + b]):
+                      float(roots[3 * b + 1]), float(roots[3 * b + 2]), float(ages[b]),
+                      float(ages[n + b]), float(ages[2 * n + b])):
             return False
-        total += counts[b]
-    return BYTES_PER_ROTATION * total == rotation_bytes
+    return True
 
 
 @njit(types.int64(types.Array(types.float64, 2, "A", readonly=True),
@@ -347,16 +394,18 @@ def sendable_rows(roots: NDArray[np.float64], rotations: NDArray[np.float64],
                   t_capture: NDArray[np.float64], t_server_receive: NDArray[np.float64],
                   t_solved: float, out: NDArray[np.bool_]) -> int:
     """Which rows of a solved batch (roots (B, 3), rotations (B, J, 4)) a spectator would
-    accept, into ``out``; returns how many it would refuse. ``row_ok`` on the root as
-    the wire carries it (float32), and rotations that quantize to what a decoder takes
-    (finite, unit within the tolerance). The server's ids and seqs are valid by
-    construction. One compiled pass over the batch: no Python per row."""
+    accept, into ``out``; returns how many it would refuse. ``row_ok`` on the root and
+    ages as the wire carries them (float32; ages taken before t_solved, which the batch
+    is sent right after), and rotations that pack to what a decoder takes (finite, unit
+    within the tolerance). The server's ids and seqs are valid by construction. One
+    compiled pass over the batch: no Python per row."""
     bad = 0
     joints = rotations.shape[1]
     for b in range(roots.shape[0]):
-        ok = row_ok(0, 0, joints, float(np.float32(roots[b, 0])),
-                    float(np.float32(roots[b, 1])), float(np.float32(roots[b, 2])),
-                    t_capture[b], t_server_receive[b], t_solved)
+        ok = math.isfinite(t_solved) and row_ok(
+            0, 0, joints, float(np.float32(roots[b, 0])), float(np.float32(roots[b, 1])),
+            float(np.float32(roots[b, 2])), float(np.float32(t_solved - t_capture[b])),
+            float(np.float32(t_solved - t_server_receive[b])), 0.0)
         for j in range(joints):
             if not ok:
                 break

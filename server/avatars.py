@@ -10,15 +10,18 @@ array operations whatever the number of avatars.
 from __future__ import annotations
 
 import functools
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from posecast.protocol.pose_coding import PoseCoding, coding_bits
 from posecast.protocol.roles import role_bits
 from posecast.server.helper import SolveHelper
 from posecast.solver.calibration import Calibration, calibrate, mount_device
 from posecast.solver.fk import forward_kinematics
 from posecast.solver.ik import PoseBatch, Solver
+from posecast.solver.ik.chains import driven_joints
 from posecast.solver.ik.shared import solve_analytic_shared
 from posecast.solver.rig import Rig
 from posecast.solver.tracking.rows import TrackingRows, lost_roles, slots_of
@@ -39,6 +42,22 @@ def pose_dicts(roles: tuple[str, ...], positions: Array,
 @functools.lru_cache(maxsize=256)  # bounded: the roles come from clients
 def _present_bits(roles: tuple[str, ...]) -> int:
     return role_bits(roles)
+
+
+@functools.lru_cache(maxsize=8)  # a server has one rig
+def _coding_fields(rig: Rig) -> dict[str, Any]:
+    driven = driven_joints(rig)
+    return {"driven": tuple(driven.tolist()),
+            "bits": tuple(coding_bits(rig.lo[j], rig.hi[j]) for j in driven.tolist()),
+            "lo": rig.lo[driven], "hi": rig.hi[driven], "pre": rig.pre[driven],
+            "post": rig.post[driven]}
+
+
+def rig_coding(rig: Rig, rest: Array | None = None) -> PoseCoding:
+    """The PoseCoding of an avatar solved on ``rig``: the joints a solve turns, each in
+    the fewest bits its limits allow; ``rest`` (J, 4) the others' rotations (default the
+    canonical pose). The same for every avatar but its rest."""
+    return PoseCoding(rest=rig.canonical if rest is None else rest, **_coding_fields(rig))
 
 
 class AvatarSolver:
@@ -116,6 +135,11 @@ class AvatarSolver:
         self.tracking.calibrate(slot, cal)
         self._has_bits[avatar_id] = role_bits(self.devices(avatar_id))
         return cal
+
+    def coding(self, avatar_id: int) -> PoseCoding:
+        """How the avatar's frames travel (``protocol.pose_coding``): its driven joints,
+        and the rotations it was calibrated with for the others."""
+        return rig_coding(self.rig, self.calibrations[avatar_id].pose)
 
     def remove(self, avatar_id: int) -> None:
         self.calibrations.pop(avatar_id, None)

@@ -135,7 +135,8 @@ class ClusterRooms:
             t = now()
             self.metrics.relay_latency.add(t - envelope.t_published)
             if envelope.kind == BATCH:
-                payload, batch = relayed_batch(envelope)
+                codings = room.codings(list(room.avatars))  # the mirror's rosters'
+                payload, batch = relayed_batch(envelope, codings)
                 known = [a in room.avatars for a in batch.avatar_ids.tolist()]
                 if not all(known):  # before its roster (a snapshot being read): skipped
                     self.metrics.frames_unsendable += known.count(False)
@@ -144,9 +145,9 @@ class ClusterRooms:
                     keep = [i for i, k in enumerate(known) if k]
                     batch = AvatarBatch.from_frames([batch.frame(i) for i in keep],
                                                     t_sent=batch.t_sent)
-                    payload = encode(batch)
+                    payload = encode(batch, codings)
                 self.metrics.frames_relayed += batch.size
-                room.deliver(RelayedBatch(payload, batch))
+                room.deliver(RelayedBatch(payload, batch, codings))
             elif envelope.kind == ROSTER:
                 roster = relayed_roster(envelope)
                 for info in roster.avatars:

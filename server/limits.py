@@ -90,8 +90,9 @@ class ServerLimits:
     # backlog builds in the event loop, where latest-wins replaces stale frames
     send_buffer_bytes: int = 64 * 1024
     # unsent bytes the kernel may hold (TCP_NOTSENT_LOWAT) before the socket counts as
-    # full: bytes in flight to a far viewer are not limited, a backlog is (docs/performance.md)
-    send_unsent_bytes: int = 4096
+    # full: bytes in flight to a far viewer are not limited, a backlog is (docs/performance.md).
+    # About one batch of 16 players (protocol 4: ~1.9 KB)
+    send_unsent_bytes: int = 2048
     # rejections logged one by one per connection; then one summary line per interval,
     # and at most log_lines_per_interval such lines for the whole server
     log_first_rejections: int = 3

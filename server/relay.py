@@ -31,6 +31,7 @@ from posecast.protocol import (
     decode,
     encode,
 )
+from posecast.protocol.pose_coding import Codings
 from posecast.server.clock import now
 
 BATCH = "b"
@@ -79,10 +80,11 @@ def clock_shift(sender_offset: float) -> float:
     return 0.0 if abs(shift) < SAME_CLOCK_S else shift
 
 
-def relayed_batch(envelope: Envelope) -> tuple[bytes, AvatarBatch]:
-    """The batch of an envelope, checked as any viewer checks one, its times moved onto
-    this process's clock when the owner's is another machine's. ProtocolError if bad."""
-    batch = decode(envelope.payload)
+def relayed_batch(envelope: Envelope, codings: Codings) -> tuple[bytes, AvatarBatch]:
+    """The batch of an envelope, checked as any viewer checks one (unpacked with the
+    room's codings), its times moved onto this process's clock when the owner's is
+    another machine's. ProtocolError if bad."""
+    batch = decode(envelope.payload, codings=codings)
     if not isinstance(batch, AvatarBatch):
         raise ProtocolError(ErrorCode.INVALID, f"expected an avatar batch, got {batch.type}")
     if envelope.shift == 0.0:
@@ -92,8 +94,11 @@ def relayed_batch(envelope: Envelope) -> tuple[bytes, AvatarBatch]:
     moved = AvatarBatch.from_arrays(
         batch.avatar_ids.tolist(), batch.seqs.tolist(), batch.roots,
         [f.rotations for f in frames], batch.t_capture + s, batch.t_server_receive + s,
-        batch.t_solved + s, batch.t_sent + s)
-    return encode(moved), moved
+        batch.t_solved + s, batch.t_sent + s, batch.lost)
+    data = encode(moved, codings)  # and as its spectators read it (float32 ages)
+    read = decode(data, codings=codings)
+    assert isinstance(read, AvatarBatch)
+    return data, read
 
 
 def relayed_roster(envelope: Envelope) -> AvatarRoster:

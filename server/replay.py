@@ -17,6 +17,7 @@ from collections.abc import Callable
 import numpy as np
 
 from posecast.protocol import AvatarBatch, AvatarInfo, AvatarRoster, ErrorCode, ProtocolError
+from posecast.protocol.pose_coding import RosterCodings
 from posecast.server.clock import now
 from posecast.server.limits import ServerLimits
 from posecast.server.metrics import Metrics
@@ -33,6 +34,8 @@ class ReplayedAvatars:
         self.limits = limits
         self.metrics = metrics
         self.ids: dict[int, int] = {}  # recorded avatar id -> room avatar id
+        # the uploaded rosters' codings, by recorded id: how the upload's batches unpack
+        self.codings = RosterCodings()
 
     def roster(self, roster: AvatarRoster) -> None:
         """Avatars to add (or give a new skeleton) and to remove, by recorded id."""
@@ -42,6 +45,7 @@ class ReplayedAvatars:
             self.metrics.limited["players_per_room"] += 1
             raise ProtocolError(ErrorCode.FULL, f"the room has no place for {len(added)} "
                                                 "more avatars")
+        self.codings.learn(roster)
         infos = []
         for info in roster.avatars:
             room_id = self.ids.get(info.avatar_id)
@@ -53,7 +57,7 @@ class ReplayedAvatars:
             avatar = self.room.avatars[room_id]
             avatar.info = AvatarInfo(avatar_id=room_id, display_name=avatar.display_name,
                                      joint_names=info.joint_names, parents=info.parents,
-                                     rest_offsets=info.rest_offsets)
+                                     rest_offsets=info.rest_offsets, coding=info.coding)
             self.room.keep(avatar, resumable=False)  # for spectators on other processes
             infos.append(avatar.info)
         if infos:
@@ -89,12 +93,12 @@ class ReplayedAvatars:
         for joints in np.unique(counts).tolist():
             chosen = [r for r, c in zip(rows, counts.tolist(), strict=True) if c == joints]
             frames = [batch.frame(r) for r in chosen]
-            shared = SharedBatch([ids[rows.index(r)] for r in chosen],
-                                 batch.seqs[chosen].tolist(),
+            room_ids = [ids[rows.index(r)] for r in chosen]
+            shared = SharedBatch(room_ids, batch.seqs[chosen].tolist(),
                                  np.array([f.root for f in frames]),
                                  np.array([f.rotations for f in frames]),
                                  [t_received] * len(chosen), [t_received] * len(chosen),
-                                 t_solved)
+                                 t_solved, codings=self.room.codings(room_ids))
             self.metrics.frames_replayed += len(chosen)
             self.room.deliver(shared)
 

@@ -36,6 +36,7 @@ from posecast.protocol import (
 from posecast.protocol.arrivals import ArrivalStamps
 from posecast.protocol.codec import encode_avatar_batch
 from posecast.protocol.messages import TrackerPoses
+from posecast.protocol.pose_coding import Codings, PoseCoding
 from posecast.protocol.roles import DEVICE_ROLES
 from posecast.protocol.validation import MAX_AVATARS, MAX_NAME_CHARS, sendable_rows
 from posecast.server.avatars import AvatarSolver
@@ -60,10 +61,12 @@ class SharedBatch:
     def __init__(self, avatar_ids: list[int], seqs: list[int], roots: np.ndarray,
                  rotations: np.ndarray, t_capture: list[float],
                  t_server_receive: list[float], t_solved: float,
-                 lost: list[int] | None = None) -> None:
+                 lost: list[int] | None = None, codings: Codings | None = None) -> None:
         self.args = (avatar_ids, seqs, roots, rotations, t_capture, t_server_receive,
                      t_solved)
         self.lost = lost if lost is not None else [0] * len(avatar_ids)
+        # how each avatar's rotations are packed: its roster's coding (Room.codings)
+        self.codings: Codings = codings if codings is not None else {}
         self.size = len(avatar_ids)
         self._encoded: bytes | None = None
         self.t_sent: float | None = None  # when first encoded: its bytes went out
@@ -77,7 +80,7 @@ class SharedBatch:
         if self._encoded is None:  # t_sent: now, as the bytes go to the sockets
             self.t_sent = now()
             self._encoded = encode_avatar_batch(*self.args, t_sent=self.t_sent,
-                                                lost=self.lost)
+                                                lost=self.lost, codings=self.codings)
         return self._encoded
 
     def frame(self, index: int) -> AvatarFrame:
@@ -91,9 +94,10 @@ class RelayedBatch(SharedBatch):
     """A batch another process solved, as this one hands it on (``serve --redis``): its
     bytes go to every spectator that takes it whole; one behind gets what it lacks."""
 
-    def __init__(self, data: bytes, batch: AvatarBatch) -> None:
+    def __init__(self, data: bytes, batch: AvatarBatch, codings: Codings) -> None:
         self.args = (batch.avatar_ids.tolist(),)  # type: ignore[assignment]
         self.lost = batch.lost.tolist()
+        self.codings = codings
         self.size = batch.size
         self._encoded = data
         self.t_sent = batch.t_sent
@@ -222,7 +226,8 @@ class Room:
         avatar.info = AvatarInfo(
             avatar_id=avatar.avatar_id, display_name=avatar.display_name,
             joint_names=sk.names, parents=tuple(int(p) for p in sk.parents),
-            rest_offsets=offsets, devices=tuple(r for r in DEVICE_ROLES if r in devices))
+            rest_offsets=offsets, devices=tuple(r for r in DEVICE_ROLES if r in devices),
+            coding=self.solver.coding(avatar.avatar_id))
         return avatar.info
 
     def keep(self, avatar: Avatar, resumable: bool = True) -> None:
@@ -373,7 +378,7 @@ class Room:
         avatars = self.avatars
         lost = [avatars[a].lost_bits if a in avatars else 0 for a in ids]
         shared = SharedBatch(ids, [f.seq for _, f, _ in pending], roots, rotations,
-                             t_capture, t_received, t_solved, lost)
+                             t_capture, t_received, t_solved, lost, self.codings(ids))
         self.metrics.frames_solved += len(pending)
         self.metrics.batches += 1
         self.deliver(shared)
@@ -414,6 +419,13 @@ class Room:
             for s in self.spectators.values():
                 if id(s) not in chosen:
                     s.outbox.offer(deliveries)
+
+    def codings(self, avatar_ids: list[int]) -> dict[int, PoseCoding | None]:
+        """How these avatars' rotations are packed: their rosters' codings (a replay's
+        avatars have none)."""
+        avatars = self.avatars
+        return {a: info.coding if (av := avatars.get(a)) is not None
+                and (info := av.info) is not None else None for a in avatar_ids}
 
     # ------------------------------------------------------------------ spectators
     def roster(self) -> AvatarRoster:
@@ -467,9 +479,15 @@ class Room:
             self.send_roster(data)
 
     def send_roster(self, data: bytes) -> None:
-        """An encoded roster to every spectator of this process."""
+        """An encoded roster to every spectator of this process, written now: whatever
+        batch follows must find it there first (a batch's rotations unpack by the
+        rosters' codings)."""
+        sockets = [s.connection for s in self.spectators.values() if s.connection is not None]
+        if sockets:
+            broadcast(sockets, data)
         for s in self.spectators.values():
-            asyncio.get_running_loop().create_task(_quiet(s.send_bytes(data)))
+            if s.connection is None:  # a test's spectator without a socket
+                asyncio.get_running_loop().create_task(_quiet(s.send_bytes(data)))
 
     @property
     def empty(self) -> bool:
@@ -520,7 +538,8 @@ async def send_deliveries(send_bytes: Callable[[bytes], Awaitable[None]],
         await send_bytes(first.encoded())
         return
     batch = AvatarBatch.from_frames([b.frame(i) for b, i in deliveries], t_sent=now())
-    await send_bytes(encode(batch))
+    codings = {(a := b.avatar_ids[i]): b.codings.get(a) for b, i in deliveries}
+    await send_bytes(encode(batch, codings))
 
 
 async def _quiet(aw: Awaitable[None]) -> None:

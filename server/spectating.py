@@ -8,7 +8,7 @@ import asyncio
 from collections.abc import Iterator
 
 import numpy as np
-from websockets.asyncio.server import ServerConnection
+from websockets.asyncio.server import ServerConnection, broadcast
 from websockets.exceptions import ConnectionClosed
 
 from posecast.protocol import (
@@ -85,7 +85,8 @@ class SpectatingConnections:
             async for data in ws:
                 t_received = arrival_time(ws, now)
                 try:
-                    msg = decode(data, max_bytes=MAX_CLIENT_MESSAGE_BYTES)
+                    msg = decode(data, max_bytes=MAX_CLIENT_MESSAGE_BYTES,
+                                 codings=avatars.codings)
                     if isinstance(msg, AvatarBatch):
                         if not frames.take(t_received, msg.size):
                             raise self._limited("frames", frames_per_s)
@@ -129,11 +130,15 @@ class SpectatingConnections:
             await ws.send(encode(Welcome(protocol_version=PROTOCOL_VERSION,
                                          connection_id=conn_id, avatar_id=None,
                                          server_time=now())))
-            for part in room.roster_messages(self.limits.roster_avatars_per_message,
-                                             self.limits.roster_message_bytes):
-                await ws.send(part)
         except ConnectionClosed:  # gone right after its hello: nothing to undo yet
             return
+        # the room's roster as it is now, written and the spectator joined in one step:
+        # no roster change can fall between them, and no batch can come before the
+        # roster its rotations unpack by
+        parts = room.roster_messages(self.limits.roster_avatars_per_message,
+                                     self.limits.roster_message_bytes)
+        for part in parts:
+            broadcast([ws], part)
         room.spectators[conn_id] = spectator
         spectator.task = asyncio.get_running_loop().create_task(outbox.run())
         reports = Budget(self.limits.reports_per_s, self.limits.report_burst)

@@ -215,12 +215,14 @@ def _calibration_bytes(scale: float = 1.0) -> bytes:
 def _scaled(poses: bytes, scale: float) -> bytes:
     import numpy as np
 
-    array = np.frombuffer(poses, "<f4").reshape(-1, 7).astype(np.float64)
+    from posecast.protocol.validation import pose_wire, wire_pose_rows
+
+    array = wire_pose_rows(poses)
     if scale != 1.0:  # centred over the origin, then as large as the bound allows
         array[:, [0, 2]] -= array[:, [0, 2]].mean(axis=0)
         reach = float(np.linalg.norm(array[:, :3], axis=1).max())
         array[:, :3] *= min(scale, POISON_REACH_M / reach)
-    return array.astype("<f4").tobytes()
+    return pose_wire(array)
 
 
 def _bad_messages() -> list[bytes]:

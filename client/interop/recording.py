@@ -34,9 +34,10 @@ from posecast.protocol import (
     AvatarInfo,
     AvatarRoster,
     ProtocolError,
-    decode,
     encode,
 )
+from posecast.protocol.codec import decode_stream
+from posecast.protocol.pose_coding import RosterCodings
 from posecast.solver.readers.errors import FormatError
 
 FORMAT = "posecast-recording"
@@ -62,6 +63,9 @@ class RecordingWriter:
         self.bytes = 0
         self._file: IO[bytes] = open(path, "xb")  # noqa: SIM115 (closed by close())
         self._last_sync = 0.0
+        # a batch is written packed as the rosters before it say, as it came: its reader
+        # learns the same codings from the same rosters
+        self.codings = RosterCodings()
         self._write(msgpack.packb({
             "format": FORMAT, "version": VERSION, "protocol_version": PROTOCOL_VERSION,
             "room": room, "server": server,
@@ -70,7 +74,9 @@ class RecordingWriter:
 
     def add(self, t: float, message: RecordedMessage) -> None:
         """One message as received at ``t`` (the recorder's clock, seconds)."""
-        self._write(msgpack.packb([float(t), encode(message)], use_bin_type=True))
+        self._write(msgpack.packb([float(t), encode(message, self.codings)],
+                                  use_bin_type=True))
+        self.codings.learn(message)
         self.records += 1
         if t - self._last_sync >= SYNC_EVERY_S:
             os.fsync(self._file.fileno())
@@ -132,8 +138,9 @@ def read_recording(path: Path) -> Recording:
         raise FormatError(src, None, "empty file: not a posecast recording")
     _check_header(header, src)
     rec = Recording(path, header)
+    codings = RosterCodings()
     for index, obj in enumerate(objects, start=1):
-        t, message = _record(obj, src, index)
+        t, message = _record(obj, src, index, codings)
         rec.times.append(t)
         rec.messages.append(message)
     whole = unpacker.tell()
@@ -171,12 +178,13 @@ def _check_header(header: Any, src: str) -> None:
                                      f"version {', '.join(map(str, sorted(READABLE_VERSIONS)))}")
 
 
-def _record(obj: Any, src: str, index: int) -> tuple[float, RecordedMessage]:
+def _record(obj: Any, src: str, index: int, codings: RosterCodings
+            ) -> tuple[float, RecordedMessage]:
     if (not isinstance(obj, list) or len(obj) != 2 or type(obj[0]) is not float
             or not isinstance(obj[1], bytes)):
         raise FormatError(src, None, f"record {index}: expected [time, message bytes]")
     try:
-        message = decode(obj[1])
+        message = decode_stream(obj[1], codings)
     except ProtocolError as err:
         raise FormatError(src, None, f"record {index}: {err.message}") from None
     if not isinstance(message, AvatarRoster | AvatarBatch):

@@ -59,6 +59,8 @@ from posecast.protocol import (
     encode,
 )
 from posecast.protocol.arrivals import ArrivalStamps, arrival_time
+from posecast.protocol.codec import decode_stream
+from posecast.protocol.pose_coding import RosterCodings
 from posecast.protocol.validation import protocol_error, safe_text
 
 # unsent bytes beyond which a player's frames are dropped rather than queued: ~20 frames
@@ -321,6 +323,9 @@ class Session:
         self.clock = ClockEstimator()
         self.last_error: Error | None = None  # latest Error from the server, for messages
         self.bytes_received = 0
+        # the rosters' codings: how the batches that follow them unpack
+        self.codings = RosterCodings()
+        self.sent_codings = RosterCodings()  # a replay's: the rosters it sent
         self._synced = asyncio.Event()
         self._pinger: asyncio.Task[None] | None = None
         self._leaving = False
@@ -339,7 +344,8 @@ class Session:
         """Send one message (a replay sends rosters and batches); SessionError if the
         server is gone."""
         try:
-            await self.ws.send(encode(message))
+            await self.ws.send(encode(message, self.sent_codings))
+            self.sent_codings.learn(message)
         except ConnectionClosed as exc:
             raise SessionError(self.url, _closed_reason(exc, self.last_error),
                                retry=not self._leaving and _retry_after_close(exc)) from None
@@ -401,7 +407,7 @@ class Session:
                 await asyncio.sleep(0)
                 self._decoding = False
             self.bytes_received += len(data)
-            msg = decode(data)
+            msg = decode_stream(data, self.codings)
             if isinstance(msg, Pong):
                 self._add_pong(msg, t)
                 continue

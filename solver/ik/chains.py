@@ -74,3 +74,11 @@ def _check_contiguous(rig: Rig, joints: list[int], name: str) -> None:
         if parents[b] != a:
             raise ValueError(f"chain {name}: {rig.skeleton.names[b]} does not hang from "
                              f"{rig.skeleton.names[a]}")
+
+
+def driven_joints(rig: Rig) -> NDArray[np.int64]:
+    """The joints a solve may turn, ascending: the pelvis and every chain's. The others
+    keep the rotations they were calibrated with (a roster sends them once)."""
+    arrays = chain_arrays(rig)
+    chained = arrays.chains[arrays.chains >= 0]
+    return np.unique(np.concatenate([chained, [arrays.pelvis]])).astype(np.int64)

@@ -45,6 +45,23 @@ def skeleton_info(avatar_id: int = 3) -> AvatarInfo:
                       rest_offsets=np.array([[0, 1, 0], [0, 0.2, 0], [0, 0.3, 0.01]]))
 
 
+def wire_poses(data: bytes) -> NDArray[np.float64]:
+    """A tracker frame's wire poses as (D, 7) numbers to corrupt: the float32 positions
+    and the quaternions' int16 levels (k, not k / 32767)."""
+    n = len(data) // 20
+    out = np.empty((n, 7))
+    out[:, :3] = np.frombuffer(data, "<f4", 3 * n).reshape(n, 3)
+    out[:, 3:] = np.frombuffer(data, "<i2", 4 * n, 12 * n).reshape(n, 4)
+    return out
+
+
+def poses_wire(rows: NDArray[np.float64]) -> bytes:
+    """``wire_poses``' rows back to bytes (levels rounded and clipped to int16)."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        levels = np.clip(np.rint(rows[:, 3:]), -32768, 32767).astype("<i2")
+        return rows[:, :3].astype("<f4").tobytes() + levels.tobytes()
+
+
 def wire(message: BaseModel) -> dict[str, Any]:
     """The msgpack map a message becomes, to corrupt one field at a time."""
     return msgpack.unpackb(encode(message))

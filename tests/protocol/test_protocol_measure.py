@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 
 import pytest
@@ -18,9 +19,9 @@ from posecast.protocol.measure import (
 )
 
 # one avatar in a batch (a row of each column): avatar_id and seq int64 (16), root
-# 3 x float32 (12), joint count uint16 (2), three float64 times (24). Column headers are
+# 3 x float32 (12), joint count uint16 (2), three float32 ages (12). Column headers are
 # per batch; the rotations column's grows from 2 to 3 bytes (bin16) past 255 bytes.
-FRAME_OVERHEAD = 16 + 12 + 2 + 24 + 2  # ids, seqs | root | joint count | times | lost
+FRAME_OVERHEAD = 16 + 12 + 2 + 12 + 2  # ids, seqs | root | joint count | ages | lost
 
 
 def test_makehuman_joint_count_matches_the_shipped_rig() -> None:
@@ -39,18 +40,33 @@ def test_bytes_per_avatar_frame(joints: int) -> None:
 
 
 def test_quantized_frame_is_far_smaller_than_float32() -> None:
-    # 53 joints: 322 bytes against 53 * 16 = 848 bytes of float32 quaternions alone
-    assert bytes_per_avatar_frame(53, avatars=1) == 322
+    # 53 joints: 310 bytes against 53 * 16 = 848 bytes of float32 quaternions alone
+    assert bytes_per_avatar_frame(53, avatars=1) == 310
     assert bytes_per_avatar_frame(53, avatars=1) < 0.4 * 53 * 16
 
 
+def test_a_solved_avatar_frame_is_at_most_120_bytes() -> None:
+    """Protocol 4: a MakeHuman avatar as the server codes it (its 20 driven joints in 71
+    bytes), whatever devices its player has: issue 30's 120 bytes."""
+    from posecast.server.avatars import rig_coding
+    from posecast.solver.readers.gltf import load_makehuman
+    from posecast.solver.rig import build_rig
+
+    coding = rig_coding(build_rig(load_makehuman().skeleton))
+    assert bytes_per_avatar_frame(coding=coding, avatars=1) == FRAME_OVERHEAD + 71 == 115
+    assert bytes_per_avatar_frame(coding=coding) <= 120
+    # a spectator of 16 players: 2.5 times less than every joint in 5 bytes
+    assert spectator_bytes_per_s(16, coding=coding) < spectator_bytes_per_s(16) / 2.5
+
+
 def test_tracker_frame_bytes() -> None:
-    # 10 devices (protocol 3): 280 bytes of float32 poses, 10 one-byte role indices, the
-    # rest keys and scalars; protocol 2's float64 poses and role names made 745
-    assert tracker_frame_bytes() == 376
-    # two devices: 8 rows and 8 role indices fewer, and 56 bytes fit a bin8 header
-    # (280 needed bin16's)
-    assert tracker_frame_bytes(("head", "hip")) == 376 - 8 * 28 - 8 - 1
+    # 10 devices (protocol 4): 200 bytes of poses (float32 positions, int16 quaternion
+    # levels), 10 one-byte role indices, the rest keys and scalars; protocol 3's float32
+    # poses made 376, protocol 2's float64 poses and role names 745
+    assert tracker_frame_bytes() == 295
+    # two devices: 8 rows and 8 role indices fewer, and 40 bytes fit a bin8 header
+    # (200 needed... bin8 too: up to 255)
+    assert tracker_frame_bytes(("head", "hip")) == 295 - 8 * 20 - 8
 
 
 def test_time_calls_measures_what_it_times() -> None:
@@ -73,13 +89,13 @@ def test_tracker_frame_decode_is_within_a_loose_budget() -> None:
         assert 0.0 < timing.median_us < 60.0
 
 
-def test_float32_poses_cost_under_a_micrometre_and_a_hundred_thousandth_of_a_degree(
-        ) -> None:
+def test_the_uplink_costs_under_a_micrometre_and_four_thousandths_of_a_degree() -> None:
     # within 10 m a coordinate's float32 ulp is at most 2**-20 m (0.95 um): half of it on
-    # each of three axes is 0.83 um; a quaternion's components round by 2**-25 at most
+    # each of three axes is 0.83 um. A quaternion's components round by at most half of
+    # 1/32767 each: |dq| <= 1/32767, an angle of at most 2/32767 rad (0.0035 deg)
     position_um, rotation_deg = tracker_frame_error(100_000)
     assert 0.0 < position_um <= 0.83
-    assert 0.0 < rotation_deg < 1e-5
+    assert 0.001 < rotation_deg <= math.degrees(2 / 32767)
 
 
 def test_a_spectators_downlink_is_a_batch_a_tick_with_its_frame_header() -> None:

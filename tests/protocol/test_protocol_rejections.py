@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from protocol_cases import rejects, skeleton_info, tpose, wire
+from protocol_cases import poses_wire, rejects, skeleton_info, tpose, wire, wire_poses
 from pydantic import ValidationError
 
 from posecast.protocol import (
@@ -30,19 +30,25 @@ from posecast.protocol import (
     Ping,
     Pong,
     ProtocolError,
+    TrackerFrame,
     Welcome,
     decode,
     decode_client,
     encode,
 )
 from posecast.protocol.batch import avatar_batch_from_wire
+from posecast.protocol.codec import encode as encode_with
 from posecast.protocol.measure import sample_avatar_batch, sample_tracker_frame
+from posecast.protocol.pose_coding import Codings, PoseCoding
 from posecast.protocol.validation import (
     MAX_AVATARS,
     MAX_POSITION_M,
     QUAT_NORM_TOLERANCE,
     device_poses,
 )
+from posecast.server.avatars import rig_coding
+from posecast.solver.readers.gltf import load_makehuman
+from posecast.solver.rig import build_rig
 
 
 # --------------------------------------------------------------------------- rejections
@@ -118,11 +124,11 @@ def test_wrong_types_name_the_field_and_value() -> None:
     rejects(msgpack.packb({**frame, "roles": [11, *frame["roles"][1:]]}),
             "tracker_frame.roles", "roles[0]: 11 is not a device index")
     rejects(msgpack.packb({**frame, "poses": [[0.0] * 7] * 10}), "tracker_frame.poses",
-            "expected packed <f4 bytes, got list")
-    # protocol 2's float64 rows: twice the bytes, not whole float32 rows for the roles
-    f8 = np.frombuffer(frame["poses"], "<f4").astype("<f8").tobytes()
-    rejects(msgpack.packb({**frame, "poses": f8}), "tracker_frame.poses",
-            "20 pose rows for 10 roles")
+            "expected packed poses (3 x <f4, 4 x <i2 each), got list")
+    # protocol 3's float32 rows (28 bytes each): 14 rows of 20 for the 10 roles
+    f4 = np.zeros((10, 7), "<f4").tobytes()
+    rejects(msgpack.packb({**frame, "poses": f4}), "tracker_frame.poses",
+            "14 pose rows for 10 roles")
     rejects(msgpack.packb({**frame, "t_capture": msgpack.ExtType(5, b"x")}),
             "tracker_frame.t_capture", "ExtType")
     rejects(msgpack.packb({**frame, "bogus": 1}), "tracker_frame.bogus",
@@ -133,18 +139,23 @@ def test_wrong_types_name_the_field_and_value() -> None:
 
 def test_nan_and_infinity_name_the_device() -> None:
     frame = wire(sample_tracker_frame())
-    p = np.frombuffer(frame["poses"], "<f4").reshape(-1, 7).copy()
+    p = wire_poses(frame["poses"])
     p[2, 0] = np.nan
-    rejects(msgpack.packb({**frame, "poses": p.tobytes()}), "tracker_frame.poses",
+    rejects(msgpack.packb({**frame, "poses": poses_wire(p)}), "tracker_frame.poses",
             "row 2 (left_hand) position[0] is nan")
-    p = np.frombuffer(frame["poses"], "<f4").reshape(-1, 7).copy()
-    p[7, 4] = np.inf
-    rejects(msgpack.packb({**frame, "poses": p.tobytes()}), "tracker_frame.poses",
-            "row 7 (right_foot) quaternion[1] is inf")
-    p = np.frombuffer(frame["poses"], "<f4").reshape(-1, 7).copy()
-    p[9, 6] = np.nan
-    rejects(msgpack.packb({**frame, "poses": p.tobytes()}), "tracker_frame.poses",
-            "row 9 (right_knee) quaternion[3] is nan")
+    p = wire_poses(frame["poses"])
+    p[5, 1] = -np.inf
+    rejects(msgpack.packb({**frame, "poses": poses_wire(p)}), "tracker_frame.poses",
+            "row 5 (right_forearm) position[1] is -inf")
+    # quaternions travel as int16 levels: only a player's own arrays can hold NaN there
+    poses = sample_tracker_frame().poses.copy()
+    for row, col, value in ((7, 4, np.inf), (9, 6, np.nan)):
+        bad = poses.copy()
+        bad[row, col] = value
+        with pytest.raises(ValidationError, match=rf"row {row} \(\w+\) quaternion\["
+                                                  rf"{col - 3}\] is {value}"):
+            TrackerFrame(seq=1, roles=sample_tracker_frame().roles, poses=bad,
+                         t_capture=1.0, clock_offset=0.0)
     rejects(msgpack.packb({**frame, "t_capture": float("nan")}), "tracker_frame.t_capture",
             "finite", "nan")
     rejects(msgpack.packb({**frame, "clock_offset": float("-inf")}),
@@ -153,12 +164,13 @@ def test_nan_and_infinity_name_the_device() -> None:
 
 def test_non_unit_quaternion_names_the_device_and_norm() -> None:
     frame = wire(sample_tracker_frame())
-    p = np.frombuffer(frame["poses"], "<f4").reshape(-1, 7).copy()
+    p = wire_poses(frame["poses"])
     p[3, 3:] *= 1.01
-    rejects(msgpack.packb({**frame, "poses": p.tobytes()}), "tracker_frame.poses",
+    rejects(msgpack.packb({**frame, "poses": poses_wire(p)}), "tracker_frame.poses",
             "row 3 (right_hand) quaternion", "norm 1.01", "within 0.001")
     p[3, 3:] = 0.0
-    rejects(msgpack.packb({**frame, "poses": p.tobytes()}), "row 3 (right_hand)", "norm 0")
+    rejects(msgpack.packb({**frame, "poses": poses_wire(p)}), "row 3 (right_hand)",
+            "norm 0")
 
 
 _POSE_VALUES = st.one_of(st.floats(-2.0, 2.0), st.sampled_from(
@@ -172,7 +184,8 @@ _POSE_VALUES = st.one_of(st.floats(-2.0, 2.0), st.sampled_from(
 def test_device_poses_follow_their_definition(rows: list[list[float]], unit: bool) -> None:
     """Accepted exactly when every position is within MAX_POSITION_M and every quaternion
     within QUAT_NORM_TOLERANCE of unit norm (as squared norms, 2x the tolerance); the
-    result has every quaternion normalised, bit for bit the input when all are unit."""
+    result is what travels: float32 positions, quaternions normalised (unless all are
+    within int16 rounding of unit) and rounded to levels k / 32767."""
     poses = np.array(rows, dtype=np.float64)
     with np.errstate(all="ignore"):
         if unit:  # mostly valid rows, some already unit to the last bit
@@ -187,24 +200,26 @@ def test_device_poses_follow_their_definition(rows: list[list[float]], unit: boo
             device_poses(poses)
         return
     out = device_poses(poses)
-    # every value the float32 it travels as (protocol 3)
-    np.testing.assert_array_equal(out, out.astype(np.float32))
+    # every value as it travels (protocol 4): float32 positions, int16 quaternion levels
     np.testing.assert_array_equal(out[:, :3], poses[:, :3].astype(np.float32))
-    if np.abs(q2 - 1.0).max() > 1e-6:  # normalised, then rounded
+    levels = out[:, 3:] * 32767.0
+    np.testing.assert_allclose(levels, np.rint(levels), rtol=0, atol=1e-9)
+    if np.abs(q2 - 1.0).max() > 1e-4:  # normalised, then rounded
         np.testing.assert_allclose(out[:, 3:], poses[:, 3:] / np.sqrt(q2)[:, None],
-                                   atol=6e-8)
-    else:  # within float32's own rounding of unit: rounded as it is
-        np.testing.assert_array_equal(out[:, 3:], poses[:, 3:].astype(np.float32))
-    np.testing.assert_allclose(np.linalg.norm(out[:, 3:], axis=1), 1.0, atol=1e-6)
+                                   rtol=0, atol=0.5 / 32767 + 1e-12)
+    else:  # within int16's own rounding of unit: rounded as it is
+        np.testing.assert_allclose(out[:, 3:], poses[:, 3:], rtol=0,
+                                   atol=0.5 / 32767 + 1e-12)
+    np.testing.assert_allclose(np.linalg.norm(out[:, 3:], axis=1), 1.0, atol=1e-4)
     # and what travels comes back as it went: decode(encode(m)) == m
     np.testing.assert_array_equal(device_poses(out), out)
 
 
 def test_positions_beyond_the_limit() -> None:
     frame = wire(sample_tracker_frame())
-    p = np.frombuffer(frame["poses"], "<f4").reshape(-1, 7).copy()
+    p = wire_poses(frame["poses"])
     p[0, :3] = [1e30, 0, 0]  # a float32 can hold it; the limit cannot
-    rejects(msgpack.packb({**frame, "poses": p.tobytes()}), "tracker_frame.poses",
+    rejects(msgpack.packb({**frame, "poses": poses_wire(p)}), "tracker_frame.poses",
             "row 0 (head) position", "1e+30 m from the origin", "limit is 1000 m")
 
 
@@ -222,20 +237,20 @@ def test_device_roles_are_checked() -> None:
     rejects(msgpack.packb({**frame, "roles": [*range(len(DEVICE_ROLES)), 0]}),
             "tracker_frame.roles", "at most 11")
     rejects(msgpack.packb({**frame, "poses": frame["poses"][:-4]}), "tracker_frame.poses",
-            "52 bytes is not a whole number of rows of 7 x <f4 (28 bytes)")
+            "36 bytes is not a whole number of poses (20 bytes each: 3 x <f4, 4 x <i2)")
 
 
 def test_calibration_needs_head_and_hands_and_takes_any_more() -> None:
     message = wire(tpose())
-    p = np.frombuffer(message["poses"], "<f4").reshape(6, 7)
+    p = wire_poses(message["poses"])
     index = {r: i for i, r in enumerate(DEVICE_ROLES)}
     rejects(msgpack.packb({**message, "roles": [index[r] for r in ("head", "hip",
                                                                     "right_hand")],
-                           "poses": p[[0, 1, 3]].tobytes()}),
+                           "poses": poses_wire(p[[0, 1, 3]])}),
             "calibrate", "missing left_hand")
     three = decode_client(msgpack.packb({**message, "roles": [index[r] for r in
                                                               CALIBRATION_ROLES],
-                                         "poses": p[[0, 2, 3]].tobytes()}))
+                                         "poses": poses_wire(p[[0, 2, 3]])}))
     assert isinstance(three, Calibrate) and three.roles == CALIBRATION_ROLES
 
 
@@ -292,9 +307,8 @@ def test_avatar_batch_checks_name_the_column_and_avatar() -> None:
     rejects(changed(rotations=bytes(big)), "avatar_batch.rotations", "avatar 0 (joint 0)",
             "1.5000 > 0.75", client=False)
     rejects(changed(rotations=bytes(rotations[:-3])), "avatar_batch.rotations",
-            "57 bytes is not a multiple of 5", client=False)
-    rejects(changed(rotations=bytes(rotations[:-5])), "avatar_batch.rotations",
-            "11 rotations for joint_counts summing to 12", client=False)
+            "57 bytes of rotations; the avatars' joint counts and codings need 60",
+            client=False)
     rejects(changed(joint_counts=np.array([4, 0, 8], "<u2").tobytes()),
             "avatar_batch.joint_counts", "avatar 1 has 0 joints", client=False)
     rejects(changed(joint_counts=np.array([4, 4], "<u2").tobytes()),
@@ -306,10 +320,10 @@ def test_avatar_batch_checks_name_the_column_and_avatar() -> None:
             "avatar_id 0 appears more than once", client=False)
     rejects(changed(seqs=np.array([1, -2, 3], "<i8").tobytes()), "avatar_batch.seqs",
             "row 1 is -2; must be >= 0", client=False)
-    rejects(changed(t_solved=np.array([1.0, 2.0, np.inf]).tobytes()), "avatar_batch.t_solved",
-            "row 2 is inf", client=False)
-    rejects(changed(t_capture=[1.0, 2.0, 3.0]), "avatar_batch.t_capture",
-            "expected packed <f8 bytes, got list", client=False)
+    rejects(changed(solved_age=np.array([1.0, 2.0, np.inf], "<f4").tobytes()), "avatar_batch",
+            "solved_age: row 2 is inf", client=False)
+    rejects(changed(capture_age=[1.0, 2.0, 3.0]), "avatar_batch",
+            "capture_age: expected packed <f4 bytes, got list", client=False)
     rejects(changed(avatar_ids=b"\x00" * 7), "avatar_batch.avatar_ids",
             "7 bytes is not a whole number of <i8", client=False)
     too_many = np.arange(MAX_AVATARS + 1, dtype="<i8").tobytes()
@@ -323,14 +337,17 @@ _SPECIAL = {"<i8": [-1, 0, 2**63 - 1], "<u2": [0, 1, MAX_JOINTS, MAX_JOINTS + 1,
             "<f8": [math.nan, math.inf, -math.inf, 1e308, 0.0],
             "<f4": [math.nan, math.inf, 999.0, 1001.0, -600.0]}
 _DTYPES = {"avatar_ids": "<i8", "seqs": "<i8", "joint_counts": "<u2", "roots": "<f4",
-           "t_capture": "<f8", "t_server_receive": "<f8", "t_solved": "<f8"}
+           "capture_age": "<f4", "receive_age": "<f4", "solved_age": "<f4", "lost": "<u2"}
 
 
 @st.composite
-def corrupted_batches(draw: st.DrawFn) -> dict[str, Any]:
-    """The wire map of a valid batch, left alone or corrupted in one of many ways."""
-    obj = wire(sample_avatar_batch(draw(st.integers(0, 4)), draw(st.integers(1, 6)),
-                                   seed=draw(st.integers(0, 3))))
+def corrupted_batches(draw: st.DrawFn, coding: PoseCoding | None = None) -> dict[str, Any]:
+    """The wire map of a valid batch (every avatar packed by ``coding`` if given), left
+    alone or corrupted in one of many ways."""
+    n = draw(st.integers(0, 4))
+    joints = coding.num_joints if coding is not None else draw(st.integers(1, 6))
+    batch = sample_avatar_batch(n, joints, seed=draw(st.integers(0, 3)))
+    obj = msgpack.unpackb(encode_with(batch, {i: coding for i in range(n)}))
     kind = draw(st.sampled_from(["none", "value", "bytes", "length", "type", "keys",
                                  "duplicate", "t_sent"]))
     column = draw(st.sampled_from(sorted(_DTYPES)))
@@ -362,11 +379,12 @@ def corrupted_batches(draw: st.DrawFn) -> dict[str, Any]:
     return obj
 
 
-def _check_agree(obj: dict[str, Any]) -> AvatarBatch | None:
+def _check_agree(obj: dict[str, Any], codings: Codings | None = None) -> AvatarBatch | None:
     """The whole-batch check accepts only what field validation accepts, equal."""
-    fast = avatar_batch_from_wire(dict(obj))
+    fast = avatar_batch_from_wire(dict(obj), codings)
     try:
-        slow: AvatarBatch | None = AvatarBatch.model_validate(obj, context={"wire": True})
+        slow: AvatarBatch | None = AvatarBatch.model_validate(
+            obj, context={"wire": True, "codings": codings})
     except ValidationError:
         slow = None
     if fast is not None:
@@ -382,6 +400,21 @@ def _check_agree(obj: dict[str, Any]) -> AvatarBatch | None:
 @given(corrupted_batches())
 def test_whole_batch_check_accepts_only_what_validation_accepts(obj: dict[str, Any]) -> None:
     _check_agree(obj)
+
+
+_MAKEHUMAN = rig_coding(build_rig(load_makehuman().skeleton))
+
+
+@settings(max_examples=200, deadline=None)
+@given(corrupted_batches(_MAKEHUMAN), st.booleans())
+def test_whole_batch_check_agrees_on_coded_batches(obj: dict[str, Any], every: bool) -> None:
+    """Protocol 4's avatars, packed by their rosters' codings: the two checks still
+    agree, also where an avatar's roster has no coding or a different joint count."""
+    n = len(obj["avatar_ids"]) // 8 if isinstance(obj.get("avatar_ids"), bytes) else 0
+    codings: dict[int, PoseCoding | None] = {i: _MAKEHUMAN for i in range(n)}
+    if not every and n:
+        codings[n - 1] = None
+    _check_agree(obj, codings)
 
 
 @pytest.mark.parametrize("column", sorted(_DTYPES))

@@ -16,6 +16,7 @@ from posecast.client.builtin import builtin_motion_path
 from posecast.client.sources.bvh_source import BvhSource
 from posecast.protocol import AvatarBatch, ProtocolError, decode
 from posecast.protocol.batch import avatar_batch_wire
+from posecast.protocol.quantize import quantize_rotations
 from posecast.protocol.validation import MAX_POSITION_M, sendable_rows
 from posecast.solver.plausible import check_t_pose
 
@@ -32,9 +33,11 @@ _time = st.one_of(st.floats(-1e6, 1e6),
 
 def _decoder_takes(root: np.ndarray, rotations: np.ndarray, times: tuple[float, ...]
                    ) -> bool:
-    with np.errstate(over="ignore"):  # 1e308 as the wire's float32: inf, as it is sent
-        wire = avatar_batch_wire([7], [3], root.reshape(1, 3), [J], rotations, [times[0]],
-                                 [times[1]], [times[2]], 1.0)
+    # sent at its solve's time, as the server sends a batch right after solving it
+    with np.errstate(over="ignore", invalid="ignore"):  # 1e308 as the wire's float32: inf
+        wire = avatar_batch_wire([7], [3], root.reshape(1, 3), [J],
+                                 quantize_rotations(rotations), [times[0]], [times[1]],
+                                 [times[2]], times[2])
     try:
         decode(msgpack.packb(wire, use_bin_type=True))
     except ProtocolError:

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import jwt
 import pytest
+from stream_decode import decode
 from websockets.asyncio.client import connect
 
 from posecast.client.builtin import builtin_motion_path
@@ -29,7 +30,7 @@ from posecast.client.session.player import Player
 from posecast.client.session.spectator import Spectator
 from posecast.client.session.tls import client_tls_context
 from posecast.client.sources import open_source
-from posecast.protocol import Error, ErrorCode, decode, encode
+from posecast.protocol import Error, ErrorCode, encode
 from posecast.server.app import Session
 from posecast.server.auth import (
     MIN_SECRET_BYTES,

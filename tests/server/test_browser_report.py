@@ -11,6 +11,7 @@ import dataclasses
 import numpy as np
 import pytest
 from conftest import serving
+from stream_decode import decode
 from test_http_metrics import TIMEOUT, fresh, histogram, http_get, joined, next_of, samples
 from websockets.asyncio.client import ClientConnection
 
@@ -20,7 +21,6 @@ from posecast.protocol import (
     Ping,
     ProtocolError,
     ViewerReport,
-    decode,
     decode_client,
     encode,
 )

@@ -362,7 +362,7 @@ def test_an_envelope_from_another_machine_is_moved_onto_this_clock() -> None:
                         use_bin_type=True)
     envelope = open_envelope(far)
     assert envelope.shift == pytest.approx(-1000.0, abs=1e-3)
-    data, moved = relayed_batch(envelope)
+    data, moved = relayed_batch(envelope, {})
     np.testing.assert_allclose(moved.t_capture, batch.t_capture - 1000.0, atol=1e-3)
     assert moved.t_sent == pytest.approx(10.8 - 1000.0, abs=1e-3)
     sent = decode(payload)  # as the owner's spectators get it (quantized)
@@ -370,8 +370,9 @@ def test_an_envelope_from_another_machine_is_moved_onto_this_clock() -> None:
     np.testing.assert_allclose(moved.rotations, sent.rotations, atol=1e-6)
     assert decode(data) == moved
     near = relay_envelope(BATCH, "same", payload)  # this machine: the bytes go on as they are
-    assert relayed_batch(open_envelope(near))[0] is not None
-    assert open_envelope(near).shift == 0.0 and relayed_batch(open_envelope(near))[0] == payload
+    assert relayed_batch(open_envelope(near), {})[0] is not None
+    assert open_envelope(near).shift == 0.0 \
+        and relayed_batch(open_envelope(near), {})[0] == payload
     for junk in (b"", b"\x93\x01\x02\x03", msgpack.packb(("x", "s", 1.0, 0.0, b""))):
         with pytest.raises(ValueError, match="not a relay envelope"):
             open_envelope(junk)

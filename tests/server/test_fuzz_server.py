@@ -25,6 +25,7 @@ import pytest
 from conftest import serving
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from stream_decode import decode
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed
 
@@ -39,11 +40,11 @@ from posecast.protocol import (
     Ping,
     ProtocolError,
     Welcome,
-    decode,
     decode_client,
     encode,
 )
 from posecast.protocol.codec import encode_tracker_frame
+from posecast.protocol.validation import pose_wire
 from posecast.server.app import Session
 from posecast.server.clock import now
 from posecast.server.limits import ServerLimits
@@ -161,8 +162,8 @@ def _extreme(draw: st.DrawFn) -> bytes:
             p = poses.copy()
             cols = slice(0, 3) if what == "positions" else slice(3, 7)
             p[:, cols] *= draw(_extreme_number)
-            with np.errstate(over="ignore"):  # to float32's infinity: refused as such
-                raw["poses"] = p.astype("<f4").tobytes()
+            # positions to float32's infinity, quaternion levels clipped: refused as such
+            raw["poses"] = pose_wire(p)
         elif what == "poses":
             raw["poses"] = draw(st.one_of(st.binary(max_size=600), _weird))
         elif what == "roles":

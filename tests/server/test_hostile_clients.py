@@ -23,6 +23,7 @@ import pytest
 from conftest import serving
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from stream_decode import decode
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed, InvalidMessage, InvalidStatus
 
@@ -38,7 +39,6 @@ from posecast.protocol import (
     Ping,
     Pong,
     Welcome,
-    decode,
     encode,
 )
 from posecast.server.app import DROP_AFTER_REFUSALS, Session

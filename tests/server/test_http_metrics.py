@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from conftest import serving
 from prometheus_client.parser import text_string_to_metric_families
+from stream_decode import decode
 from websockets.asyncio.client import ClientConnection, connect
 
 from posecast.protocol import (
@@ -27,7 +28,6 @@ from posecast.protocol import (
     Hello,
     TrackerFrame,
     Welcome,
-    decode,
     encode,
 )
 from posecast.server.app import Session

@@ -11,6 +11,7 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 
 import pytest
 from conftest import serving
+from stream_decode import decode
 from test_server import calibration, receive, receive_type, tracker
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed
@@ -27,7 +28,6 @@ from posecast.protocol import (
     Ping,
     Pong,
     Welcome,
-    decode,
     encode,
 )
 from posecast.server.app import Session

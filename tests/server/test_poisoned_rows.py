@@ -22,6 +22,7 @@ import msgpack
 import numpy as np
 import pytest
 from conftest import serving
+from stream_decode import decode
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed
 
@@ -35,11 +36,10 @@ from posecast.protocol import (
     Hello,
     ProtocolError,
     Welcome,
-    decode,
     encode,
     encode_tracker_frame,
 )
-from posecast.protocol.validation import MAX_POSITION_M
+from posecast.protocol.validation import MAX_POSITION_M, pose_wire, wire_pose_rows
 from posecast.server.app import Session
 from posecast.server.clock import now
 from posecast.server.limits import ServerLimits
@@ -84,6 +84,7 @@ async def _watch(ws: ClientConnection, watch: Watch) -> None:
         assert isinstance(data, bytes)
         raw = msgpack.unpackb(data)
         if raw.get("type") != "avatar_batch":
+            decode(data)  # a roster: its codings unpack the batches after it
             continue
         watch.batches += 1
         try:
@@ -195,9 +196,9 @@ def _frame(seq: int, s: DeviceSample, t_capture: float, clock_offset: float,
 def _hostile_t_pose(scale: float = 1.0) -> bytes:
     t_pose, _ = _samples((3.0, 0.0) if scale == 1.0 else (0.0, 0.0), 0)
     raw = msgpack.unpackb(encode(calibrate_message(t_pose, 0.0)))
-    poses = np.frombuffer(raw["poses"], "<f4").reshape(-1, 7).copy()
+    poses = wire_pose_rows(raw["poses"])
     poses[:, :3] *= scale
-    raw["poses"] = poses.tobytes()
+    raw["poses"] = pose_wire(poses)
     return msgpack.packb(raw)
 
 

@@ -16,10 +16,12 @@ import msgpack
 import numpy as np
 import pytest
 from conftest import serving
+from stream_decode import decode
 from websockets.asyncio.client import ClientConnection, connect
 
 from posecast.client.session.connection import SEND_BUFFER_LIMIT, make_hello, open_session
 from posecast.protocol import (
+    MAX_ANGLE_ERROR_DEG,
     PROTOCOL_VERSION,
     AvatarBatch,
     AvatarRoster,
@@ -28,16 +30,13 @@ from posecast.protocol import (
     Hello,
     TrackerFrame,
     Welcome,
-    decode,
     decode_client,
-    dequantize_rotations,
     encode,
-    quantize_rotations,
     rotation_angle,
 )
-from posecast.protocol.validation import device_poses
+from posecast.protocol.validation import device_poses, pose_wire
 from posecast.server.app import Session
-from posecast.server.avatars import AvatarSolver
+from posecast.server.avatars import AvatarSolver, rig_coding
 from posecast.server.clock import now
 from posecast.server.metrics import Metrics
 from posecast.server.outbox import Outbox
@@ -206,16 +205,20 @@ def test_spectator_receives_the_offline_solution(session: Session, recording: Vi
     state = PoseBatch(cal.pose[None].copy(), cal.root[None].copy())
     rows = TrackingRows(1)  # every device drives, as on the server
     rows.calibrate(0, cal)
+    coding = rig_coding(rig, cal.pose)  # as the roster gave it
+
     for f, batch in enumerate(received):
         rows.stage(0, slots_of(rec.devices), device_poses(poses(rec, f + 1)), 0.0)
         rows.fill(np.zeros(1, dtype=np.intp))
         solver.solve(rows.targets[:1], state, cal.offsets[None], rows.weights[:1])
         (frame,) = batch.frames
         assert frame.seq == f + 1
-        # exactly the offline rotations as the wire carries them, within 0.1 deg of them
-        wire = dequantize_rotations(quantize_rotations(state.rotations[0]))
+        # exactly the offline rotations as the roster's coding carries them, within its
+        # bound of them
+        wire = coding.unpack(coding.pack(state.rotations[:1]))[0]
         np.testing.assert_array_equal(frame.rotations, wire)
-        assert np.degrees(rotation_angle(frame.rotations, state.rotations[0]).max()) <= 0.1
+        assert np.degrees(rotation_angle(frame.rotations, state.rotations[0]).max()) \
+            <= MAX_ANGLE_ERROR_DEG * (1 + 1e-6)
         np.testing.assert_allclose(frame.root, state.root[0], atol=1e-5)  # float32 root
 
 
@@ -267,9 +270,9 @@ def _bad_messages(rec: ViveRecording) -> list[tuple[str, bytes, str]]:
     wrong_type = {**frame, "seq": "three"}
     nan = poses(rec, 3).copy()
     nan[2, 1] = math.nan
-    nan_frame = {**frame, "poses": nan.astype("<f4").tobytes()}
+    nan_frame = {**frame, "poses": pose_wire(nan)}
     # over the protocol's 4 KiB, within websockets' bound (which closes with 1009)
-    huge = {**frame, "padding": b"x" * 3800}
+    huge = {**frame, "padding": b"x" * 4000}
     old = {"type": "hello", "protocol_version": 99, "role": "player", "room": "x",
            "display_name": "old"}
     return [("not_msgpack", b"\xc1 not msgpack", "msgpack"),

@@ -12,6 +12,7 @@ from collections.abc import Awaitable, Callable
 import msgpack
 import pytest
 from conftest import serving
+from stream_decode import decode
 from test_server import receive_type
 from websockets.asyncio.client import ClientConnection, connect
 
@@ -22,7 +23,6 @@ from posecast.protocol import (
     Ping,
     Pong,
     Welcome,
-    decode,
     encode,
 )
 from posecast.protocol.validation import MAX_TEXT_CHARS

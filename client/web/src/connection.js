@@ -5,7 +5,7 @@
 
 import { ClockEstimator, eventTime, now } from "./clock.js";
 import {
-  decodeMessage, encodeHello, encodeLeave, encodePing, encodeViewerReport, ProtocolError,
+  decodeMessage, encodeHello, learnCodings, encodeLeave, encodePing, encodeViewerReport, ProtocolError,
 } from "./protocol.js";
 
 const SYNC_BURST = 5;
@@ -27,6 +27,7 @@ export class Connection {
     this.token = token;
     this.post = post;
     this.clock = new ClockEstimator();
+    this.codings = new Map(); // the rosters' codings: how the batches after them unpack
     this.ws = null;
     this.welcomed = false;
     this.wait = RECONNECT_FIRST_MS;
@@ -69,7 +70,8 @@ export class Connection {
     const tArrival = stamped <= t ? stamped : t;
     let msg;
     try {
-      msg = decodeMessage(event.data);
+      msg = decodeMessage(event.data, this.codings);
+      learnCodings(this.codings, msg);
     } catch (err) {
       if (err instanceof ProtocolError) {
         this.post({ type: "bad_message", text: err.message });
@@ -84,6 +86,7 @@ export class Connection {
       return;
     }
     if (msg.type === "welcome") {
+      this.codings.clear(); // a new session: its roster follows, whole
       this.welcomed = true;
       this.wait = RECONNECT_FIRST_MS;
       this.clock.reset();

@@ -6,10 +6,13 @@
 // a message that fails throws ProtocolError, and the page drops it and counts it.
 
 import { decode as unpack, encode as pack } from "@msgpack/msgpack";
-import { dequantizeRotations, RotationError } from "./quantize.js";
+import { dequantizeRotations, QUATERNION_BITS, RotationError, unpackFrame } from "./quantize.js";
 
-// 2: rosters name each avatar's devices, batches say which of them are lost now
-export const PROTOCOL_VERSION = 3;
+// 4: a roster gives each solved avatar a coding; its frames carry its driven joints,
+// packed by their limits, and their times as float32 ages before t_sent
+export const PROTOCOL_VERSION = 4;
+export const MAX_AGE_S = 1e6; // protocol.sizes.MAX_AGE_S
+const MAX_PARAMETER_BITS = 16;
 export const MAX_MESSAGE_BYTES = 1 << 20; // what a viewer accepts (protocol.validation)
 export const MAX_JOINTS = 256;
 export const MAX_AVATARS = 1024;
@@ -77,8 +80,9 @@ function packF64(values) {
 
 // ------------------------------------------------------------------ server -> client
 /** Bytes -> a checked message: {type: "welcome" | "avatar_roster" | "avatar_batch" |
- * "pong" | "error", ...}. Throws ProtocolError. */
-export function decodeMessage(data) {
+ * "pong" | "error", ...}. A batch unpacks with `codings` (avatar id -> its roster's
+ * coding, or null: 5 bytes a joint), which `learnCodings` keeps. Throws ProtocolError. */
+export function decodeMessage(data, codings = new Map()) {
   const bytes = data instanceof Uint8Array ? data : new Uint8Array(data);
   if (bytes.length > MAX_MESSAGE_BYTES) {
     throw new ProtocolError(`message of ${bytes.length} bytes; the limit is ${MAX_MESSAGE_BYTES}`);
@@ -94,7 +98,15 @@ export function decodeMessage(data) {
   }
   const read = READERS[msg.type];
   if (!read) throw new ProtocolError(`unknown message type ${JSON.stringify(msg.type)}`);
-  return read(msg);
+  return read(msg, codings);
+}
+
+/** What a roster says of its avatars' codings, into `codings` (protocol.pose_coding's
+ * RosterCodings.learn); any other message: nothing. */
+export function learnCodings(codings, msg) {
+  if (msg.type !== "avatar_roster") return;
+  for (const id of msg.removed) codings.delete(id);
+  for (const info of msg.avatars) codings.set(info.avatarId, info.coding);
 }
 
 const READERS = {
@@ -138,7 +150,44 @@ function avatarInfo(a, index) {
     `${where}.rest_offsets: ${J} finite rows of 3 expected`);
   return { avatarId: count(a.avatar_id, `${where}.avatar_id`),
     displayName: text(a.display_name, `${where}.display_name`, 64),
-    jointNames: names, parents, restOffsets: offsets, devices: devices(a.devices, where) };
+    jointNames: names, parents, restOffsets: offsets, devices: devices(a.devices, where),
+    coding: a.coding === undefined || a.coding === null ? null : coding(a.coding, J, where) };
+}
+
+/** A roster entry's PoseCoding (protocol/pose_coding.py), checked as Python checks it. */
+function coding(c, J, where) {
+  where = `${where}.coding`;
+  need(isMap(c), `${where}: not a map`);
+  const driven = list(c.driven, `${where}.driven`, J);
+  const K = driven.length;
+  need(K >= 1 && driven.every((j, k) => Number.isInteger(j) && j >= 0 && j < J &&
+    (k === 0 || j > driven[k - 1])), `${where}.driven: expected 1 to ${J} ascending joints`);
+  const bits = list(c.bits, `${where}.bits`, K);
+  const rows = (name, width) => {
+    const out = f32(c[name], `${where}.${name}`);
+    need(out.length === width * K, `${where}.${name}: ${K} rows of ${width} expected`);
+    return out;
+  };
+  const lo = rows("lo", 3);
+  const hi = rows("hi", 3);
+  const pre = rows("pre", 4);
+  const post = rows("post", 4);
+  need(bits.length === K && bits.every((b, k) => Array.isArray(b) && b.length === 3 &&
+    b.every((n, i) => Number.isInteger(n) && n >= 0 && n <= MAX_PARAMETER_BITS &&
+      (n === 0 || (lo[3 * k + i] < hi[3 * k + i] && Math.abs(lo[3 * k + i]) <= 2 * Math.PI &&
+        Math.abs(hi[3 * k + i]) <= 2 * Math.PI)))),
+  `${where}.bits: each joint's three bits (0 to ${MAX_PARAMETER_BITS}) agree with lo < hi`);
+  need([pre, post].every((q) => q.every(Number.isFinite)), `${where}: frames not finite`);
+  need(c.rest instanceof Uint8Array && c.rest.length === 5 * J, `${where}.rest: ${J} rotations expected`);
+  let rest;
+  try {
+    rest = dequantizeRotations(c.rest);
+  } catch (err) {
+    if (err instanceof RotationError) throw new ProtocolError(`${where}.rest: ${err.message}`);
+    throw err;
+  }
+  const total = bits.reduce((a, b) => a + (b[0] + b[1] + b[2] || QUATERNION_BITS), 0);
+  return { driven, bits, lo, hi, pre, post, rest, numJoints: J, nbytes: Math.ceil(total / 8) };
 }
 
 /** A roster entry's devices: distinct known roles; absent (an older recording): none. */
@@ -149,12 +198,12 @@ function devices(v, where) {
   return roles;
 }
 
-const BATCH_COLUMNS = { avatar_ids: 8, seqs: 8, roots: 12, joint_counts: 2, t_capture: 8,
-  t_server_receive: 8, t_solved: 8 };
+const BATCH_COLUMNS = { avatar_ids: 8, seqs: 8, roots: 12, joint_counts: 2, capture_age: 4,
+  receive_age: 4, solved_age: 4 };
 
 /** An AvatarBatch checked whole: columns of one row per avatar; rotations (J_b per avatar,
- * 4 numbers each) in one Float64Array. */
-function avatarBatch(m) {
+ * 4 numbers each) in one Float64Array, each avatar's unpacked by its coding. */
+function avatarBatch(m, codings) {
   for (const name of [...Object.keys(BATCH_COLUMNS), "rotations"]) {
     need(m[name] instanceof Uint8Array, `avatar_batch.${name}: expected packed bytes`);
   }
@@ -173,27 +222,49 @@ function avatarBatch(m) {
   const roots = Float64Array.from({ length: 3 * n }, (_, i) => rootBytes.getFloat32(4 * i, true));
   need(roots.every((v) => Math.abs(v) <= MAX_POSITION_M), "avatar_batch.roots: not finite " +
     `or beyond ${MAX_POSITION_M} m`);
+  const codes = ids.map((id, b) => {
+    const c = codings.get(id) ?? null;
+    need(c === null || c.numJoints === counts[b], `avatar_batch: avatar ${b} (id ${id}): ` +
+      `${counts[b]} joints, but its roster's coding has ${c?.numJoints}`);
+    return c;
+  });
+  const sizes = codes.map((c, b) => (c === null ? 5 * counts[b] : c.nbytes));
+  const need_ = sizes.reduce((a, s) => a + s, 0);
+  need(m.rotations.length === need_, `avatar_batch.rotations: ${m.rotations.length} bytes of ` +
+    `rotations; the avatars' joint counts and codings need ${need_}`);
   const total = counts.reduce((a, c) => a + c, 0);
-  need(m.rotations.length === 5 * total, `avatar_batch.rotations: ${m.rotations.length} bytes ` +
-    `for ${total} joints`);
-  let rotations;
-  try {
-    rotations = dequantizeRotations(m.rotations);
-  } catch (err) {
-    if (err instanceof RotationError) throw new ProtocolError(`avatar_batch.rotations: ${err.message}`);
-    throw err;
-  }
+  const rotations = new Float64Array(4 * total);
+  let offset = 0;
+  let first = 0;
+  codes.forEach((c, b) => {
+    try {
+      if (c === null) {
+        rotations.set(dequantizeRotations(m.rotations.subarray(offset, offset + sizes[b])), 4 * first);
+      } else {
+        unpackFrame(m.rotations, offset, c, rotations, first);
+      }
+    } catch (err) {
+      if (err instanceof RotationError) {
+        throw new ProtocolError(`avatar_batch.rotations: avatar ${b}: ${err.message}`);
+      }
+      throw err;
+    }
+    offset += sizes[b];
+    first += counts[b];
+  });
+  const tSent = time(m.t_sent, "avatar_batch.t_sent");
+  const times = (name) => f32(m[name], `avatar_batch.${name}`).map((age) => {
+    need(Math.abs(age) <= MAX_AGE_S, `avatar_batch.${name}: ages are within ${MAX_AGE_S} s`);
+    return tSent - age;
+  });
   return { type: "avatar_batch", avatarIds: ids, seqs, counts, roots, rotations,
-    tCapture: f64(m.t_capture, "avatar_batch.t_capture"),
-    tServerReceive: f64(m.t_server_receive, "avatar_batch.t_server_receive"),
-    tSolved: f64(m.t_solved, "avatar_batch.t_solved"),
-    tSent: time(m.t_sent, "avatar_batch.t_sent"), lost: lostBits(m.lost, n) };
+    tCapture: Float64Array.from(times("capture_age")),
+    tServerReceive: Float64Array.from(times("receive_age")),
+    tSolved: Float64Array.from(times("solved_age")), tSent, lost: lostBits(m.lost, n) };
 }
 
-/** The `lost` column: one uint16 of DEVICE_ROLES bits per avatar; absent (a version-1
- * recording): nothing lost. */
+/** The `lost` column: one uint16 of DEVICE_ROLES bits per avatar. */
 function lostBits(bytes, n) {
-  if (bytes === undefined) return new Uint16Array(n);
   need(bytes instanceof Uint8Array && bytes.length === 2 * n,
     `avatar_batch.lost: expected ${2 * n} bytes of packed <u2 for ${n} avatars`);
   const v = view(bytes);
@@ -242,6 +313,12 @@ function f64(bytes, where) {
   const out = Float64Array.from({ length: bytes.length / 8 }, (_, i) => v.getFloat64(8 * i, true));
   need(out.every(Number.isFinite), `${where}: times must be finite`);
   return out;
+}
+
+function f32(bytes, where) {
+  need(bytes instanceof Uint8Array && bytes.length % 4 === 0, `${where}: expected packed <f4`);
+  const v = view(bytes);
+  return Float64Array.from({ length: bytes.length / 4 }, (_, i) => v.getFloat32(4 * i, true));
 }
 
 function ints(bytes, where) {

@@ -48,3 +48,87 @@ export function dequantizeRotations(bytes) {
   }
   return out;
 }
+
+// ------------------------------------------------------------------ protocol 4's codings
+// protocol/pose_coding.py: an avatar's frame is one little-endian bit stream. A joint
+// with bits (0, 0, 0) is a 38-bit quaternion as above; else each parameter with bits
+// (x swing, twist y, z swing) is a level k of its limits, p = lo + k (hi - lo) / top,
+// and q = pre · swing(x, 0, z) · twist_y(t) · post.
+export const QUATERNION_BITS = 38;
+
+/** n <= 38 bits at bit `at` of `bytes` (lowest first), as a Number (exact below 2^53). */
+function readBits(bytes, at, n) {
+  let value = 0;
+  let scale = 1;
+  let got = 0;
+  while (got < n) {
+    const bit = at + got;
+    const shift = bit & 7;
+    const take = Math.min(8 - shift, n - got);
+    value += ((bytes[bit >> 3] >> shift) & ((1 << take) - 1)) * scale;
+    scale *= 2 ** take;
+    got += take;
+  }
+  return value;
+}
+
+function mul(a, b) { // quaternions x, y, z, w: protocol/pose_coding.py's _mul
+  return [a[3] * b[0] + a[0] * b[3] + a[1] * b[2] - a[2] * b[1],
+    a[3] * b[1] - a[0] * b[2] + a[1] * b[3] + a[2] * b[0],
+    a[3] * b[2] + a[0] * b[1] - a[1] * b[0] + a[2] * b[3],
+    a[3] * b[3] - a[0] * b[0] - a[1] * b[1] - a[2] * b[2]];
+}
+
+/** One avatar's frame (`coding.nbytes` bytes at `offset`) -> its J rotations into `out`
+ * at joint `first`: the driven joints decoded, the others the coding's rest. Throws
+ * RotationError for bits no encoder writes. */
+export function unpackFrame(bytes, offset, coding, out, first) {
+  out.set(coding.rest, 4 * first);
+  let at = 8 * offset;
+  coding.driven.forEach((j, k) => {
+    const o = 4 * (first + j);
+    const bits = coding.bits[k];
+    if (bits[0] + bits[1] + bits[2] === 0) {
+      const word = readBits(bytes, at, QUATERNION_BITS);
+      at += QUATERNION_BITS;
+      const largest = Math.floor(word / 2 ** 36);
+      const fields = [Math.floor(word / 2 ** 24) % 4096, Math.floor(word / 2 ** 12) % 4096,
+        word % 4096];
+      let squares = 0.0;
+      let f = 0;
+      for (let i = 0; i < 4; i++) {
+        if (i === largest) continue;
+        const c = (fields[f++] - HALF) * STEP;
+        out[o + i] = c;
+        squares += c * c;
+      }
+      if (squares > MAX_KEPT_SQUARES) {
+        throw new RotationError(`joint ${j}: the three sent components are not those of a ` +
+          "unit quaternion");
+      }
+      out[o + largest] = Math.sqrt(1.0 - squares);
+      return;
+    }
+    const p = [0.0, 0.0, 0.0];
+    for (let i = 0; i < 3; i++) {
+      if (!bits[i]) continue;
+      const top = 2 ** bits[i] - 1;
+      const lo = coding.lo[3 * k + i];
+      p[i] = lo + readBits(bytes, at, bits[i]) * ((coding.hi[3 * k + i] - lo) / top);
+      at += bits[i];
+    }
+    const [x, t, z] = p;
+    const angle = Math.sqrt(x * x + z * z);
+    const half = angle < 1e-12 ? 0.5 : Math.sin(0.5 * angle) / angle;
+    const d = mul([x * half, 0.0, z * half, Math.cos(0.5 * angle)],
+      [0.0, Math.sin(0.5 * t), 0.0, Math.cos(0.5 * t)]);
+    const q = mul(mul(coding.pre.subarray(4 * k, 4 * k + 4), d),
+      coding.post.subarray(4 * k, 4 * k + 4));
+    // pre and post are float32 values, unit within ~1e-7: the rotation is, exactly
+    const inv = 1.0 / Math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+    out.set(q.map((v) => v * inv), o);
+  });
+  if (at < 8 * (offset + coding.nbytes) && readBits(bytes, at, 8 * (offset + coding.nbytes) - at)) {
+    throw new RotationError("padding bits after the last joint are set");
+  }
+}

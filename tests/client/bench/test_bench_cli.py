@@ -28,8 +28,13 @@ def test_bench_solver_paper_by_name(capsys: pytest.CaptureFixture[str]) -> None:
 def test_bench_protocol_json(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["bench", "protocol", "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
-    assert doc["joints"] == 53 and 250 < doc["bytes_per_avatar_frame"] < 400
+    # issue 30: <= 120 bytes an avatar-frame, no more error than the 5-byte bound
+    assert doc["joints"] == 53 and doc["driven_joints"] == 20
+    assert 100 < doc["bytes_per_avatar_frame"] <= 120
+    assert 300 < doc["bytes_per_avatar_frame_every_joint"] < 320
     assert doc["quantization_worst_deg_measured"] <= doc["quantization_bound_deg"] <= 0.1
+    assert 0.02 < doc["coded_worst_deg_measured"] <= doc["quantization_bound_deg"]
+    assert doc["tracker_frame_bytes"] <= 350
 
 
 def test_bad_batch_sizes_are_refused(capsys: pytest.CaptureFixture[str]) -> None:

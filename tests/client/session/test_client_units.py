@@ -265,10 +265,12 @@ def test_tracker_frame_from_a_sample_round_trips_exactly() -> None:
     assert msg.seq == 41 and msg.roles == ROLES
     assert msg.t_capture == s.t_capture and msg.clock_offset == -3.25e-4
     assert msg.t_capture_server == s.t_capture - 3.25e-4
-    # the poses as the float32 they travel as (protocol 3): within half a float32 ulp
+    # the poses as they travel (protocol 4): positions within half a float32 ulp,
+    # quaternion components within half an int16 level
     np.testing.assert_array_equal(msg.positions, s.positions.astype(np.float32))
     np.testing.assert_allclose(msg.positions, s.positions, rtol=2**-24, atol=0)
-    np.testing.assert_allclose(msg.rotations, s.rotations, rtol=0, atol=2**-24)
+    np.testing.assert_allclose(msg.rotations, s.rotations, rtol=0, atol=0.5 / 32767 + 1e-12)
+    assert not np.array_equal(msg.rotations, s.rotations)
     back = decode(encode(msg))
     assert isinstance(back, TrackerFrame)
     assert back.seq == msg.seq and back.roles == msg.roles
@@ -284,8 +286,10 @@ def test_calibrate_from_a_sample_round_trips_exactly() -> None:
     assert isinstance(back, Calibrate)
     assert back.roles == s.roles and back.t_capture == s.t_capture
     np.testing.assert_array_equal(back.poses, msg.poses)
-    # the sample's rows, as float32 (positions within 2 m: an ulp is 1.2e-7)
-    np.testing.assert_allclose(msg.poses, s.poses, rtol=0, atol=2**-23)
+    # the sample's rows as they travel: positions as float32 (within 2 m: an ulp is
+    # 1.2e-7), quaternion components within half an int16 level
+    np.testing.assert_allclose(msg.positions, s.positions, rtol=0, atol=2**-23)
+    np.testing.assert_allclose(msg.rotations, s.rotations, rtol=0, atol=0.5 / 32767 + 1e-12)
 
 
 def test_messages_from_the_builtin_motion_source() -> None:

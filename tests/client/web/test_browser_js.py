@@ -38,10 +38,13 @@ from posecast.protocol import (
     encode,
     quantize_rotations,
 )
+from posecast.protocol.pose_coding import RosterCodings
 from posecast.protocol.roles import DEVICE_ROLES, DeviceRole, role_bits
+from posecast.server.avatars import rig_coding
 from posecast.server.web import avatar_document
 from posecast.solver import rotations as R
 from posecast.solver.readers.gltf import load_makehuman
+from posecast.solver.rig import build_rig
 
 WEB = REPO_ROOT / "client" / "web"
 NODE_TIMEOUT = 120.0  # seconds: node starts in well under one
@@ -94,11 +97,7 @@ def batch_case(rng: np.random.Generator) -> dict[str, object]:
     wire = encode(batch)
     got = decode(wire)
     assert isinstance(got, AvatarBatch)
-    # a version-1 recording's batch has no lost column: nothing lost
-    old = {k: v for k, v in msgpack.unpackb(wire).items() if k != "lost"}
-    old_wire = msgpack.packb(old, use_bin_type=True)
-    assert isinstance(v1 := decode(old_wire), AvatarBatch) and v1.lost.tolist() == [0, 0]
-    return {"wire": wire.hex(), "v1_wire": old_wire.hex(), "values": {
+    return {"wire": wire.hex(), "values": {
         "lost": got.lost.tolist(), "lost_roles": [list(f.lost_roles) for f in got.frames],
         "avatar_ids": got.avatar_ids.tolist(), "seqs": got.seqs.tolist(),
         "joint_counts": got.joint_counts.tolist(), "roots": got.roots.ravel().tolist(),
@@ -111,13 +110,13 @@ def bad_messages(batch_wire: bytes) -> list[dict[str, str]]:
     obj = msgpack.unpackb(batch_wire)
     short = dict(obj, rotations=obj["rotations"][:-5])
     far = dict(obj, roots=np.array([[0, 0, 0], [0, 1e4, 0]], "<f4").tobytes())
-    nan = dict(obj, t_capture=np.array([1.0, np.nan]).tobytes())
+    nan = dict(obj, capture_age=np.array([1.0, np.nan], "<f4").tobytes())
     twice = dict(obj, avatar_ids=np.array([3, 3], "<i8").tobytes())
     lost_short = dict(obj, lost=obj["lost"][:2])
     lost_beyond = dict(obj, lost=np.array([0, 1 << len(DEVICE_ROLES)], "<u2").tobytes())
     lost_list = dict(obj, lost=[0, 1])
     cases = [(short, "avatar_batch.rotations"), (far, "avatar_batch.roots"),
-             (nan, "avatar_batch.t_capture"), (twice, "appears twice"),
+             (nan, "avatar_batch.capture_age"), (twice, "appears twice"),
              (lost_short, "avatar_batch.lost: expected 4 bytes"),
              (lost_beyond, "avatar_batch.lost: bits beyond the 11 device roles"),
              (lost_list, "avatar_batch.lost: expected 4 bytes"),
@@ -195,6 +194,7 @@ def test_the_pages_javascript_speaks_the_python_protocol(node: str, tmp_path: Pa
         "rotations": rotation_cases(rng), "bad_rotations": bad_rotations(), "batch": batch,
         "bad_messages": bad_messages(bytes.fromhex(batch["wire"])),  # type: ignore[arg-type]
         "roster": roster_case(), "clock": clock_cases(rng), "skinning": skinning_case(rng),
+        "coded": coded_case(rng),
         "lost": lost_case(batch),
         "avatar_json": json.loads(avatar_document("/static/avatar.glb")),
         "pong": encode(Pong(t0=1.5, t1=2.25, t2=2.5)).hex(),
@@ -217,6 +217,35 @@ def test_the_pages_javascript_speaks_the_python_protocol(node: str, tmp_path: Pa
     assert decode_client(sent["leave"]) == Leave(reason="page closed")
     assert decode_client(sent["report"]) == ViewerReport(
         t_capture=[1.0, 2.5], t_received=[1.25, 2.75], t_presented=[1.5, 3.0])
+
+
+def coded_case(rng: np.random.Generator) -> dict[str, object]:
+    """Protocol 4: a roster with a MakeHuman avatar's coding, then a batch of it (and of
+    one uncoded avatar) packed by it; what Python decodes, and the same bytes spoiled."""
+    mesh = load_makehuman()
+    sk = mesh.skeleton
+    rig = build_rig(sk)
+    coding = rig_coding(rig, R.normalize(unit(rng, sk.num_joints)))
+    info = AvatarInfo(avatar_id=21, display_name="coded", joint_names=sk.names,
+                      parents=tuple(int(p) for p in sk.parents), rest_offsets=sk.offsets,
+                      coding=coding)
+    codings = RosterCodings()
+    roster = encode(AvatarRoster(avatars=(info,)))
+    codings.learn(decode(roster))
+    poses = np.array([unit(rng, sk.num_joints) for _ in range(2)])
+    batch = AvatarBatch.from_arrays([21, 5], [1, 2], np.zeros((2, 3)), list(poses),
+                                    [3.0, 3.5], [3.1, 3.6], [3.2, 3.7], 3.25)
+    wire = encode(batch, codings)
+    got = decode(wire, codings=codings)
+    assert isinstance(got, AvatarBatch)
+    obj = msgpack.unpackb(wire)
+    padding = bytearray(obj["rotations"])
+    padding[coding.nbytes - 1] |= 0x80  # past avatar 0's last joint
+    spoiled = {"padding": msgpack.packb(dict(obj, rotations=bytes(padding))).hex(),
+               "short": msgpack.packb(dict(obj, rotations=obj["rotations"][:-1])).hex()}
+    return {"roster": roster.hex(), "wire": wire.hex(), "spoiled": spoiled,
+            "rotations": got.rotations.ravel().tolist(), "t_capture": got.t_capture.tolist(),
+            "nbytes": coding.nbytes}
 
 
 def roster_case() -> dict[str, object]:

@@ -1,0 +1,103 @@
+#!/usr/bin/env python3
+"""Alternated A/B of `posecast demo` against an older commit, on this machine.
+
+    python scripts/ab_demo.py --old 9c29c91~1 [--pairs 3] [--players 16] \
+        [--spectators 16] [--seconds 20] [--json FILE]
+
+The older commit is checked out into a temporary git worktree and run from there with
+this checkout's virtual environment (before the namespace move the packages were
+top-level: `client.cli`; after, `posecast.client.cli`). Each side is warmed up once (its
+compiled kernels; the run is thrown away), then the pairs run one after the other, old
+then new, so that a drift of the machine (another load, a throttled CPU) falls on both.
+It prints each run's p99s, the medians of each side and their ratios, and whether the
+new code is within 10% of the old on the two network hops and no higher on the server
+(issue 30's rule for the loopback tails). A tail on a shared VM moves by more than that
+from one minute to the next: read the pairs, not one run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent.parent
+STAGES = ("capture_to_server", "server", "network_to_spectator", "capture_to_spectator")
+HOPS = ("capture_to_server", "network_to_spectator")  # within 10% of the old code's
+TIMEOUT_S = 900  # a cold run compiles its kernels first
+
+
+def _module(tree: Path) -> str:
+    return "posecast.client.cli" if (tree / "posecast").is_dir() else "client.cli"
+
+
+def _demo(tree: Path, args: argparse.Namespace, seconds: float) -> dict[str, dict[str, float]]:
+    cmd = [sys.executable, "-m", _module(tree), "demo", "--players", str(args.players),
+           "--spectators", str(args.spectators), "--seconds", str(seconds), "--json"]
+    done = subprocess.run(cmd, cwd=tree, env={"PYTHONPATH": str(tree), "PATH": "/usr/bin:/bin"},
+                          capture_output=True, text=True, timeout=TIMEOUT_S)
+    if done.returncode != 0:
+        raise SystemExit(f"ab_demo: the demo in {tree} failed: {done.stderr.strip()[-400:]}")
+    doc = json.loads(done.stdout)
+    return {k: v for k, v in doc["latency_ms"].items() if k in STAGES}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--old", required=True, help="the older commit (any git revision)")
+    parser.add_argument("--pairs", type=int, default=3)
+    parser.add_argument("--players", type=int, default=16)
+    parser.add_argument("--spectators", type=int, default=16)
+    parser.add_argument("--seconds", type=float, default=20.0)
+    parser.add_argument("--json", type=Path, help="also write every run's figures here")
+    args = parser.parse_args()
+    if args.pairs < 1 or args.seconds <= 0:
+        parser.error("--pairs must be >= 1 and --seconds > 0")
+    rev = subprocess.run(["git", "rev-parse", "--verify", f"{args.old}^{{commit}}"],
+                         cwd=HERE, capture_output=True, text=True)
+    if rev.returncode != 0:
+        parser.error(f"--old {args.old!r} is not a commit of this repository")
+    with tempfile.TemporaryDirectory(prefix="posecast-ab-") as tmp:
+        old = Path(tmp) / "old"
+        subprocess.run(["git", "worktree", "add", "--detach", str(old), rev.stdout.strip()],
+                       cwd=HERE, check=True, capture_output=True)
+        try:
+            runs: dict[str, list[dict[str, dict[str, float]]]] = {"old": [], "new": []}
+            print(f"warming both sides up (old {rev.stdout[:10]}; a cold one compiles) ...",
+                  flush=True)
+            for tree in (old, HERE):
+                _demo(tree, args, 2.0)
+            for i in range(1, args.pairs + 1):
+                for side, tree in (("old", old), ("new", HERE)):
+                    figures = _demo(tree, args, args.seconds)
+                    runs[side].append(figures)
+                    print(f"{side} {i}: " + "  ".join(
+                        f"{k} {figures[k]['p99']:.2f}" for k in STAGES if k in figures),
+                        flush=True)
+        finally:
+            subprocess.run(["git", "worktree", "remove", "--force", str(old)], cwd=HERE,
+                           capture_output=True)
+    print(f"\np99 medians of {args.pairs} alternated pairs (ms), "
+          f"{args.players} players + {args.spectators} spectators:")
+    print(f"{'stage':<22}{'old':>8}{'new':>8}{'new/old':>9}")
+    verdict = []
+    for k in STAGES:
+        o = statistics.median(r[k]["p99"] for r in runs["old"])
+        n = statistics.median(r[k]["p99"] for r in runs["new"])
+        print(f"{k:<22}{o:>8.2f}{n:>8.2f}{n / o:>9.2f}")
+        if k in HOPS:
+            verdict.append(f"{k} {'within' if n <= 1.1 * o else 'beyond'} 10%")
+        elif k == "server":
+            verdict.append(f"server {'no higher' if n <= o else 'higher'}")
+    print("; ".join(verdict))
+    if args.json is not None:
+        args.json.write_text(json.dumps({"old": args.old, "runs": runs}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
