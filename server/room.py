@@ -43,6 +43,7 @@ from posecast.server.avatars import AvatarSolver
 from posecast.server.busy import OpenBursts
 from posecast.server.cadence import Cadence
 from posecast.server.clock import now
+from posecast.server.framing import binary_frame, write_frame
 from posecast.server.limits import ServerLimits
 from posecast.server.metrics import Metrics
 from posecast.server.outbox import Outbox
@@ -69,6 +70,7 @@ class SharedBatch:
         self.codings: Codings = codings if codings is not None else {}
         self.size = len(avatar_ids)
         self._encoded: bytes | None = None
+        self._framed: bytes | None = None
         self.t_sent: float | None = None  # when first encoded: its bytes went out
         self._batch: AvatarBatch | None = None
 
@@ -82,6 +84,13 @@ class SharedBatch:
             self._encoded = encode_avatar_batch(*self.args, t_sent=self.t_sent,
                                                 lost=self.lost, codings=self.codings)
         return self._encoded
+
+    def framed(self) -> bytes:
+        """The encoded batch as one websocket frame, built once for every spectator that
+        takes it whole (``server.framing``)."""
+        if self._framed is None:
+            self._framed = binary_frame(self.encoded())
+        return self._framed
 
     def frame(self, index: int) -> AvatarFrame:
         if self._batch is None:
@@ -100,6 +109,7 @@ class RelayedBatch(SharedBatch):
         self.codings = codings
         self.size = batch.size
         self._encoded = data
+        self._framed = None
         self.t_sent = batch.t_sent
         self._batch = batch
 
@@ -403,22 +413,25 @@ class Room:
         self.deliver_here(shared)
 
     def deliver_here(self, shared: SharedBatch) -> None:
-        """The batch to this process's spectators (``deliver``)."""
+        """The batch to this process's spectators (``deliver``): framed once, written to
+        every socket that keeps up; the others' outboxes get it (latest wins)."""
         t = asyncio.get_running_loop().time()
-        direct = [s for s in self.spectators.values() if s.direct(t)]
-        if direct:
-            broadcast([s.connection for s in direct if s.connection is not None],
-                      shared.encoded())
-            n = shared.size
-            for s in direct:
-                s.outbox.sent_directly(n, t)
-            self.metrics.frames_delivered += n * len(direct)
-        if len(direct) < len(self.spectators):
+        n = shared.size
+        frame: bytes | None = None
+        behind: list[Spectator] = []
+        for s in self.spectators.values():
+            if s.direct(t):
+                if frame is None:
+                    frame = shared.framed()
+                if write_frame(s.connection, frame):  # type: ignore[arg-type]
+                    s.outbox.sent_directly(n, t)
+                    continue
+            behind.append(s)
+        self.metrics.frames_delivered += n * (len(self.spectators) - len(behind))
+        if behind:
             deliveries = {a: (shared, i) for i, a in enumerate(shared.avatar_ids)}
-            chosen = {id(s) for s in direct}
-            for s in self.spectators.values():
-                if id(s) not in chosen:
-                    s.outbox.offer(deliveries)
+            for s in behind:
+                s.outbox.offer(deliveries)
 
     def codings(self, avatar_ids: list[int]) -> dict[int, PoseCoding | None]:
         """How these avatars' rotations are packed: their rosters' codings (a replay's

@@ -26,6 +26,18 @@ SHARED_DATA = REPO_ROOT.parent / "shared" / "data"
 SERVER_TIMEOUT = 10.0  # seconds for a test server to start or to stop
 
 
+@pytest.fixture(autouse=True)
+def _fresh_stream_codings() -> Iterator[None]:
+    """Each test's own rosters' codings (tests/stream_decode.py): every server a test
+    starts numbers its avatars from 1 again."""
+    import stream_decode
+
+    stream_decode.CODINGS.clear()
+    stream_decode.CODINGS.plans.clear()
+    yield
+
+
+
 def shared_data_path(path: str) -> Path:
     """``../shared/data/<path>``; skips the calling test when it is absent."""
     full = SHARED_DATA / path

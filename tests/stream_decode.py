@@ -1,8 +1,9 @@
 """``decode`` for tests that read a server's websocket themselves: each message decoded as
 a viewer decodes its stream, batches unpacked with the codings of the rosters read
-before them (``protocol.codec.decode_stream``). One set of codings for the test run:
-avatar ids are unique per server, and every spectator gets an avatar's roster before
-its frames."""
+before them (``protocol.codec.decode_stream``). One set of codings for a test (conftest
+clears it before each): avatar ids are unique per server, every spectator gets an
+avatar's roster before its frames, and a later server's roster replaces an earlier
+one's."""
 
 from __future__ import annotations
 
