@@ -35,8 +35,8 @@ from posecast.protocol.validation import (
     MAX_CLIENT_MESSAGE_BYTES,
     MAX_MESSAGE_BYTES,
     _short_repr,
+    checked_pose_wire,
     checked_poses,
-    pose_wire,
     protocol_error,
     safe_text,
 )
@@ -177,6 +177,6 @@ def encode_tracker_frame(seq: int, roles: Sequence[str], poses: NDArray[Any],
     except KeyError:  # an unknown role: the message says which
         return encode(TrackerFrame(seq=seq, roles=tuple(roles), poses=poses,  # type: ignore[arg-type]
                                    t_capture=t_capture, clock_offset=clock_offset))
-    return msgpack.packb({"roles": indices, "poses": pose_wire(checked),
+    return msgpack.packb({"roles": indices, "poses": checked_pose_wire(checked),
                           "t_capture": float(t_capture), "clock_offset": float(clock_offset),
                           "type": "tracker_frame", "seq": int(seq)}, use_bin_type=True)

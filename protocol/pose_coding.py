@@ -170,19 +170,23 @@ class PoseCoding(Model):
         _pack(rotations, *self.kernel_args(), self.nbytes, out)  # type: ignore[call-arg, arg-type]
         return out.tobytes()
 
-    def unpack(self, data: bytes | memoryview, rest: Array | None = None) -> Array:
+    def unpack(self, data: bytes | memoryview, rest: Array | None = None,
+               rest_rows: NDArray[np.int64] | None = None) -> Array:
         """B frames -> (B, J, 4) rotations: the driven joints decoded, the others from
-        ``rest`` ((B, J, 4); default this coding's). ValueError for bits no encoder
-        writes, naming the frame and joint."""
+        ``rest`` (default this coding's): frame b's from rest[rest_rows[b]] (default b).
+        ValueError for bits no encoder writes, naming the frame and joint."""
         n = len(data) // self.nbytes if self.nbytes else 0
         if n * self.nbytes != len(data):
             raise ValueError(f"{len(data)} bytes is not a whole number of frames of "
                              f"{self.nbytes} bytes")
         if rest is None:
-            rest = np.broadcast_to(self.rest, (n, self.num_joints, 4))
+            rest, rest_rows = self.rest[None], np.zeros(n, dtype=np.int64)
+        elif rest_rows is None:
+            rest_rows = np.arange(n, dtype=np.int64)
         out = np.empty((n, self.num_joints, 4))
         status, b, j = _unpack(np.frombuffer(data, dtype=np.uint8), rest,  # type: ignore[call-arg]
-                               *self.kernel_args(), self.nbytes, out)  # type: ignore[arg-type]
+                               rest_rows, *self.kernel_args(), self.nbytes,  # type: ignore[arg-type]
+                               out)
         if status == 1:
             raise ValueError(f"frame {b}: padding bits after the last joint are set")
         if status == 2:
@@ -292,16 +296,22 @@ def _pack(rotations: NDArray[np.float64], driven: NDArray[np.int64],
 
 
 @njit(types.UniTuple(types.int64, 3)(types.Array(types.uint8, 1, "C", readonly=True),
-                                     _RO_A[3], *_KERNEL_CODING, types.float64[:, :, ::1]),
+                                     _RO_A[3], types.Array(types.int64, 1, "A", readonly=True),
+                                     *_KERNEL_CODING, types.float64[:, :, ::1]),
       cache=True)
-def _unpack(data: NDArray[np.uint8], rest: NDArray[np.float64], driven: NDArray[np.int64],
-            axes: NDArray[np.uint8], bits: NDArray[np.uint8], lo: NDArray[np.float64],
-            hi: NDArray[np.float64], pre: NDArray[np.float64], post: NDArray[np.float64],
-            nbytes: int, out: NDArray[np.float64]) -> tuple[int, int, int]:
-    """Fills out; (0, 0, 0), (1, frame, 0) for padding bits set, (2, frame, joint) for a
-    quaternion no encoder writes."""
+def _unpack(data: NDArray[np.uint8], rest: NDArray[np.float64], rest_rows: NDArray[np.int64],
+            driven: NDArray[np.int64], axes: NDArray[np.uint8], bits: NDArray[np.uint8],
+            lo: NDArray[np.float64], hi: NDArray[np.float64], pre: NDArray[np.float64],
+            post: NDArray[np.float64], nbytes: int, out: NDArray[np.float64]
+            ) -> tuple[int, int, int]:
+    """Fills out (frame b's undriven joints from rest[rest_rows[b]]); (0, 0, 0), (1,
+    frame, 0) for padding bits set, (2, frame, joint) for a quaternion no encoder
+    writes."""
     for b in range(out.shape[0]):
-        out[b] = rest[b]
+        r = rest_rows[b]
+        for j in range(out.shape[1]):  # element by element: a slice copy cost ~0.5 us
+            for i in range(4):
+                out[b, j, i] = rest[r, j, i]
         acc = 0
         held = 0
         at = b * nbytes
@@ -394,6 +404,7 @@ class RosterCodings(dict[int, "PoseCoding | None"]):
     def __init__(self) -> None:
         super().__init__()
         self.plans: dict[tuple[bytes, bytes], _Plan] = {}
+        self._table: tuple[PoseCoding, Array, dict[int, int]] | bool | None = False
 
     def learn(self, message: object) -> None:
         """Take a roster's avatars and removals (any other message: nothing)."""
@@ -404,6 +415,23 @@ class RosterCodings(dict[int, "PoseCoding | None"]):
         for info in message.avatars:  # type: ignore[attr-defined]
             self[info.avatar_id] = info.coding
         self.plans.clear()
+        self._table = False
+
+    def table(self) -> tuple[PoseCoding, Array, dict[int, int]] | None:
+        """When every avatar has a coding of one kind (a room solved on one rig: the
+        usual case): that kind, every avatar's rest stacked, and each one's row in it;
+        else None. A batch of any of them then unpacks in one call, whichever avatars it
+        holds (a room's bursts split into batches of varying avatars)."""
+        if self._table is False:
+            codings = list(self.values())
+            kinds = {id(_structure(c)) if c is not None else 0 for c in codings}
+            if not codings or len(kinds) != 1 or 0 in kinds:
+                self._table = None
+            else:
+                rests = np.stack([c.rest for c in codings])  # type: ignore[union-attr]
+                self._table = (codings[0], rests,  # type: ignore[assignment]
+                               {a: r for r, a in enumerate(self)})
+        return self._table  # type: ignore[return-value]
 
 
 class _Plan:
@@ -439,6 +467,20 @@ def unpack_batch(avatar_ids: Sequence[int], joint_counts: Sequence[int],
     """A batch's rotations -> (sum of joint counts, 4), each avatar decoded by its
     coding; ValueError naming the avatar for anything no encoder writes."""
     ids, counts = list(avatar_ids), list(joint_counts)
+    if isinstance(codings, RosterCodings) and ids:
+        table = codings.table()
+        if table is not None:  # one kind of coding for all: one call, no plan
+            only, rests, row_of = table
+            rows = [row_of.get(a, -1) for a in ids]
+            if -1 not in rows and len(data) == len(ids) * only.nbytes \
+                    and counts.count(only.num_joints) == len(counts):
+                try:
+                    decoded = only.unpack(data, rests, np.array(rows, dtype=np.int64))
+                except ValueError as exc:
+                    frame, _, why = str(exc).removeprefix("frame ").partition(" ")
+                    sep = ": " if frame.endswith(":") else " "
+                    raise ValueError(f"avatar {frame.rstrip(':')}{sep}{why}") from None
+                return decoded.reshape(-1, 4)
     if isinstance(codings, RosterCodings):
         key = (np.asarray(ids, dtype=np.int64).tobytes(),
                np.asarray(counts, dtype=np.uint16).tobytes())
