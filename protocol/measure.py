@@ -22,7 +22,7 @@ from posecast.protocol.codec import (
     encode_avatar_batch,
 )
 from posecast.protocol.messages import AvatarBatch, TrackerFrame
-from posecast.protocol.pose_coding import PoseCoding
+from posecast.protocol.pose_coding import PoseCoding, RosterCodings
 from posecast.protocol.roles import DEVICE_ROLES, DeviceRole
 
 # what a tracker frame is measured with: a full Vive rig, the ten roles of the paper
@@ -109,8 +109,11 @@ def tracker_frame_bytes(roles: tuple[DeviceRole, ...] = VIVE_RIG) -> int:
     return len(encode(sample_tracker_frame(roles)))
 
 
-def _codings(avatars: int, coding: PoseCoding | None) -> dict[int, PoseCoding | None]:
-    return {i: coding for i in range(avatars)}
+def _codings(avatars: int, coding: PoseCoding | None) -> RosterCodings:
+    """Every avatar's coding as a viewer holds them (learnt from rosters)."""
+    codings = RosterCodings()
+    codings.update({i: coding for i in range(avatars)})
+    return codings
 
 
 def bytes_per_avatar_frame(num_joints: int = MAKEHUMAN_JOINTS, avatars: int = 16,
