@@ -477,9 +477,7 @@ def unpack_batch(avatar_ids: Sequence[int], joint_counts: Sequence[int],
                 try:
                     decoded = only.unpack(data, rests, np.array(rows, dtype=np.int64))
                 except ValueError as exc:
-                    frame, _, why = str(exc).removeprefix("frame ").partition(" ")
-                    sep = ": " if frame.endswith(":") else " "
-                    raise ValueError(f"avatar {frame.rstrip(':')}{sep}{why}") from None
+                    raise ValueError(_frame_to_avatar(str(exc), range(len(ids)))) from None
                 return decoded.reshape(-1, 4)
     if isinstance(codings, RosterCodings):
         key = (np.asarray(ids, dtype=np.int64).tobytes(),
@@ -515,16 +513,21 @@ def unpack_batch(avatar_ids: Sequence[int], joint_counts: Sequence[int],
                                                  for b in members)
         try:
             decoded = kind.unpack(chunk, rest)
-        except ValueError as exc:  # "frame 2 (joint 5): why" -> "avatar 7 (joint 5): why"
-            frame, _, why = str(exc).removeprefix("frame ").partition(" ")
-            index = int(frame.rstrip(":"))
-            sep = ": " if frame.endswith(":") else " "
-            raise ValueError(f"avatar {members[index]}{sep}{why}") from None
+        except ValueError as exc:
+            raise ValueError(_frame_to_avatar(str(exc), members)) from None
         if plan.whole:
             return decoded.reshape(-1, 4)
         for i, b in enumerate(members):
             out[rows[b]:rows[b + 1]] = decoded[i]
     return out
+
+
+def _frame_to_avatar(message: str, members: Sequence[int]) -> str:
+    """'frame 2 (joint 5): why' (the kernel's, frame 2 of the ones unpacked) -> 'avatar 7
+    (joint 5): why', given which avatar of the batch each frame was."""
+    frame, _, why = message.removeprefix("frame ").partition(" ")
+    sep = ": " if frame.endswith(":") else " "
+    return f"avatar {members[int(frame.rstrip(':'))]}{sep}{why}"
 
 
 def _joint_to_avatar(message: str, counts: list[int], first: int = 0) -> str:
