@@ -87,7 +87,9 @@ def kernel_steps() -> list[Step]:
     from posecast.solver.ik import SOLVERS
 
     def protocol() -> None:
-        # the wire codec's kernels have fixed signatures: importing compiles or loads them
+        # the wire codec's kernels (and a replayed clip's) have fixed signatures:
+        # importing compiles or loads them
+        import posecast.client.sources.bvh_source
         import posecast.protocol.quantize
         import posecast.protocol.validation  # noqa: F401
 

@@ -25,7 +25,7 @@ from pydantic import (
     model_validator,
 )
 
-from posecast.protocol.model import Model, first_duplicate
+from posecast.protocol.model import Model, construct_whole, first_duplicate
 from posecast.protocol.pose_coding import Codings, pack_batch, unpack_batch
 from posecast.protocol.roles import DEVICE_ROLES, LOST_BITS_LIMIT, roles_of_bits
 from posecast.protocol.validation import (
@@ -36,7 +36,7 @@ from posecast.protocol.validation import (
     IntArray,
     Time,
     as_rows,
-    batch_columns_ok,
+    batch_columns,
     check_positions,
     int_column,
     is_wire,
@@ -365,25 +365,22 @@ def avatar_batch_from_wire(obj: dict[str, Any], codings: Codings | None = None
     seqs = np.frombuffer(obj["seqs"], "<i8")
     counts = np.frombuffer(obj["joint_counts"], "<u2")
     ages = np.frombuffer(obj["capture_age"] + obj["receive_age"] + obj["solved_age"], "<f4")
-    roots = np.frombuffer(obj["roots"], "<f4")
-    if not batch_columns_ok(ids, seqs, counts, ages, roots) or len(set(ids.tolist())) != n:
+    lost = np.frombuffer(obj["lost"], "<u2")
+    wide, joints = np.empty(6 * n), np.empty(n, dtype=np.int64)
+    if not batch_columns(ids, seqs, counts, ages, np.frombuffer(obj["roots"], "<f4"), lost,
+                         LOST_BITS_LIMIT, t_sent, wide, joints):
         return None
-    times = t_sent - ages.astype(np.float64)
-    lost_bytes = obj["lost"]
-    # every value below LOST_BITS_LIMIT: its high byte (little-endian) is small; bytes.max
-    # in C, where a numpy reduction cost a spectator ~4 us a batch
-    if n and max(lost_bytes[1::2]) >= LOST_BITS_LIMIT >> 8:
-        return None
-    lost = np.frombuffer(lost_bytes, "<u2")
     try:
-        rotations = unpack_batch(ids.tolist(), counts.tolist(), obj["rotations"], codings)
+        rotations = unpack_batch(ids, counts, obj["rotations"], codings)
     except ValueError:
         return None
-    return AvatarBatch.model_construct(
-        avatar_ids=ids, seqs=seqs, roots=readonly(roots.reshape(n, 3).astype(np.float64)),
-        joint_counts=readonly(counts.astype(np.int64)), rotations=readonly(rotations),
-        t_capture=readonly(times[:n]), t_server_receive=readonly(times[n:2 * n]),
-        t_solved=readonly(times[2 * n:]), t_sent=t_sent, lost=lost)
+    wide.flags.writeable = joints.flags.writeable = False  # and so every view of them
+    return construct_whole(AvatarBatch, {
+        "type": "avatar_batch", "avatar_ids": ids, "seqs": seqs,
+        "roots": wide[:3 * n].reshape(n, 3), "joint_counts": joints,
+        "rotations": readonly(rotations), "t_capture": wide[3 * n:4 * n],
+        "t_server_receive": wide[4 * n:5 * n], "t_solved": wide[5 * n:], "t_sent": t_sent,
+        "lost": lost})
 
 
 def avatar_batch_wire(avatar_ids: ArrayLike, seqs: ArrayLike, roots: ArrayLike,

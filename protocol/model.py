@@ -3,10 +3,12 @@ when it holds numpy arrays."""
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict
+
+M = TypeVar("M", bound=BaseModel)
 
 
 def first_duplicate(items: tuple[Any, ...] | list[Any]) -> Any:
@@ -41,3 +43,18 @@ def same(a: Any, b: Any) -> bool:
     if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
         return bool(np.array_equal(a, b))
     return bool(a == b)
+
+
+def construct_whole(cls: type[M], values: dict[str, Any]) -> M:
+    """``cls.model_construct(**values)`` for a decoder's hot path, where ``values`` holds
+    every field, already checked: pydantic's walks each field's aliases and defaults,
+    ~10 us for an AvatarBatch, which every spectator builds ~200 times a second. A model
+    with a post-init hook, or values that are not exactly its fields, go the long way."""
+    if cls.__pydantic_post_init__ or values.keys() != cls.__pydantic_fields__.keys():
+        return cls.model_construct(**values)
+    model = cls.__new__(cls)
+    object.__setattr__(model, "__dict__", values)
+    object.__setattr__(model, "__pydantic_fields_set__", set(values))
+    object.__setattr__(model, "__pydantic_extra__", None)
+    object.__setattr__(model, "__pydantic_private__", None)
+    return model

@@ -26,12 +26,19 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
+import msgpack
 import numpy as np
 from numba import njit, types
 from numpy.typing import NDArray
-from pydantic import ValidationInfo, field_serializer, field_validator, model_validator
+from pydantic import (
+    ValidationInfo,
+    ValidatorFunctionWrapHandler,
+    field_serializer,
+    field_validator,
+    model_validator,
+)
 
 from posecast.protocol.model import Model
 from posecast.protocol.quantize import (
@@ -128,14 +135,38 @@ class PoseCoding(Model):
                   self.post.shape[0])
         if any(n != K for n in shapes):
             raise ValueError(f"bits, lo, hi, pre and post need a row per driven joint ({K})")
-        for k, bits in enumerate(self.bits):
-            ok = all(0 <= b <= MAX_PARAMETER_BITS for b in bits) and all(
-                self.lo[k, i] < self.hi[k, i] for i in range(3) if bits[i])
-            if not ok:
-                raise ValueError(f"joint {self.driven[k]}: bits {bits} and limits do not "
-                                 f"agree (an axis sent: 1 to {MAX_PARAMETER_BITS} bits, "
-                                 f"lo < hi)")
+        # whole arrays: every spectator validates every avatar's coding as players join
+        bits = np.array(self.bits, dtype=np.int64).reshape(-1, 3)
+        bad = ((bits < 0) | (bits > MAX_PARAMETER_BITS)
+               | ((bits > 0) & ~(self.lo < self.hi))).any(axis=1)
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise ValueError(f"joint {self.driven[k]}: bits {self.bits[k]} and limits do "
+                             f"not agree (an axis sent: 1 to {MAX_PARAMETER_BITS} bits, "
+                             f"lo < hi)")
         return self
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _known(cls, value: Any, handler: ValidatorFunctionWrapHandler,
+               info: ValidationInfo) -> PoseCoding:
+        """A coding whose bytes came over the wire before is taken as validated then (it
+        is frozen). A process of many viewers (the demo's 16) reads every avatar's coding
+        once per viewer: at ~0.2 ms each, the rosters of 16 players joining held its
+        loop ~100 ms. (Defined after ``_consistent``, so that it wraps that check too.)"""
+        if not is_wire(info) or type(value) is not dict:
+            return handler(value)
+        try:
+            key = msgpack.packb(value, use_bin_type=True)
+        except (TypeError, ValueError, OverflowError):
+            return handler(value)
+        known = _DECODED.get(key)
+        if known is None:
+            known = handler(value)
+            if len(_DECODED) >= _DECODED_MAX:  # codings come from servers: bounded
+                _DECODED.clear()
+            _DECODED[key] = known
+        return known
 
     @property
     def num_joints(self) -> int:
@@ -158,6 +189,19 @@ class PoseCoding(Model):
                       np.ascontiguousarray(self.lo), np.ascontiguousarray(self.hi),
                       np.ascontiguousarray(self.pre), np.ascontiguousarray(self.post))
             self.__dict__["_kernel_args"] = cached  # frozen model: a private cache
+        return cached
+
+    def unpack_args(self) -> tuple[NDArray[Any], ...]:
+        """driven, axes, bits, lo, step (a level's width), pre, post as the decoder takes
+        them: the steps divided out and the frames made unit once, not per joint."""
+        cached = self.__dict__.get("_unpack_args")
+        if cached is None:
+            driven, axes, bits, lo, hi, pre, post = self.kernel_args()
+            levels = np.maximum((1 << bits.astype(np.int64)) - 1, 1)
+            cached = (driven, axes, bits, lo, np.where(bits > 0, (hi - lo) / levels, 0.0),
+                      pre / np.linalg.norm(pre, axis=1, keepdims=True),
+                      post / np.linalg.norm(post, axis=1, keepdims=True))
+            self.__dict__["_unpack_args"] = cached
         return cached
 
     def pack(self, rotations: Array) -> bytes:
@@ -185,14 +229,14 @@ class PoseCoding(Model):
             rest_rows = np.arange(n, dtype=np.int64)
         out = np.empty((n, self.num_joints, 4))
         status, b, j = _unpack(np.frombuffer(data, dtype=np.uint8), rest,  # type: ignore[call-arg]
-                               rest_rows, *self.kernel_args(), self.nbytes,  # type: ignore[arg-type]
+                               rest_rows, *self.unpack_args(), self.nbytes,  # type: ignore[arg-type]
                                out)
-        if status == 1:
-            raise ValueError(f"frame {b}: padding bits after the last joint are set")
-        if status == 2:
-            raise ValueError(f"frame {b} (joint {j}): the three sent components are not "
-                             f"those of a unit quaternion")
+        _raise_for(status, f"frame {b}", j)
         return out
+
+
+_DECODED: dict[bytes, PoseCoding] = {}  # a coding's msgpack bytes -> its validated model
+_DECODED_MAX = 256
 
 
 # ----------------------------------------------------------------------- kernels
@@ -226,19 +270,40 @@ def _parameters(q: NDArray[np.float64], pre: NDArray[np.float64], post: NDArray[
     return s[0] * scale, twist, s[2] * scale
 
 
-@njit(cache=True)
+_SERIES_MAX_U = 2.5  # |h| <= 1.58 rad: the series below are exact to ~2e-17 there
+_TERMS = 11
+_COS = tuple((-1) ** n / math.factorial(2 * n) for n in range(_TERMS))  # of u^n
+_SINC = tuple((-1) ** n / math.factorial(2 * n + 1) for n in range(_TERMS))
+
+
+@njit(cache=True, inline="always")
+def _cos_sinc(u: float) -> tuple[float, float]:
+    """cos(h) and sin(h)/h for u = h^2. Their Taylor series to u^10 where u is small
+    (every angle of a joint coded within its limits): two polynomials cost a third of
+    libm's sin and cos, which were half of a spectator's decoding. math's beyond."""
+    if u > _SERIES_MAX_U:
+        h = math.sqrt(u)
+        return math.cos(h), math.sin(h) / h
+    c = 0.0
+    sinc = 0.0
+    for n in range(_TERMS - 1, -1, -1):  # Horner, both at once
+        c = c * u + _COS[n]
+        sinc = sinc * u + _SINC[n]
+    return c, sinc
+
+
+@njit(cache=True, inline="always")
 def _rotation(x: float, twist: float, z: float, pre: NDArray[np.float64],
               post: NDArray[np.float64], out: NDArray[np.float64]) -> None:
-    angle = math.sqrt(x * x + z * z)
-    half = 0.5 if angle < 1e-12 else math.sin(0.5 * angle) / angle
-    s = (x * half, 0.0, z * half, math.cos(0.5 * angle))
-    d = _mul(s[0], s[1], s[2], s[3], 0.0, math.sin(0.5 * twist), 0.0, math.cos(0.5 * twist))
+    # swing exp(x, 0, z): half-angle h = |(x, z)| / 2; twist about y: half-angle twist / 2
+    c, sinc = _cos_sinc(0.25 * (x * x + z * z))
+    ct, sinct = _cos_sinc(0.25 * twist * twist)
+    half = 0.5 * sinc
+    d = _mul(x * half, 0.0, z * half, c, 0.0, 0.5 * twist * sinct, 0.0, ct)
     q = _mul(pre[0], pre[1], pre[2], pre[3], d[0], d[1], d[2], d[3])
     q = _mul(q[0], q[1], q[2], q[3], post[0], post[1], post[2], post[3])
-    # pre and post are float32 values, unit within ~1e-7: the rotation is, exactly
-    inv = 1.0 / math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-    for i in range(4):
-        out[i] = q[i] * inv
+    for i in range(4):  # unit: pre and post were made unit (``unpack_args``)
+        out[i] = q[i]
 
 
 @njit(cache=True, inline="always")
@@ -250,12 +315,12 @@ def _level(value: float, lo: float, hi: float, bits: int) -> int:
 
 
 @njit(cache=True, inline="always")
-def _value(acc: int, held: int, bits: int, lo: float, hi: float) -> tuple[float, int, int]:
+def _value(acc: int, held: int, bits: int, lo: float, step: float
+           ) -> tuple[float, int, int]:
     """The next parameter off the bit stream (0 where ``bits`` is 0: the axis is absent)."""
     if bits == 0:
         return 0.0, acc, held
-    top = (1 << bits) - 1
-    return lo + (acc & top) * ((hi - lo) / top), acc >> bits, held - bits
+    return lo + (acc & ((1 << bits) - 1)) * step, acc >> bits, held - bits
 
 
 _RO_A = {n: types.Array(types.float64, n, "A", readonly=True) for n in (2, 3)}
@@ -295,46 +360,83 @@ def _pack(rotations: NDArray[np.float64], driven: NDArray[np.int64],
             out[at] = acc & 0xFF
 
 
-@njit(types.UniTuple(types.int64, 3)(types.Array(types.uint8, 1, "C", readonly=True),
-                                     _RO_A[3], types.Array(types.int64, 1, "A", readonly=True),
-                                     *_KERNEL_CODING, types.float64[:, :, ::1]),
+@njit(cache=True, inline="always")
+def _unpack_frame(data: NDArray[np.uint8], at: int, rest: NDArray[np.float64], r: int,
+                  driven: NDArray[np.int64], axes: NDArray[np.uint8], bits: NDArray[np.uint8],
+                  lo: NDArray[np.float64], step: NDArray[np.float64], pre: NDArray[np.float64],
+                  post: NDArray[np.float64], out: NDArray[np.float64], b: int
+                  ) -> tuple[int, int]:
+    """Frame b (from byte ``at``) into out[b], its undriven joints from rest[r]: (0, 0),
+    (1, 0) for padding bits set, (2, joint) for a quaternion no encoder writes."""
+    for j in range(out.shape[1]):  # element by element: a slice copy cost ~0.5 us
+        for i in range(4):
+            out[b, j, i] = rest[r, j, i]
+    acc = 0
+    held = 0
+    for k in range(driven.shape[0]):
+        need = 38 if axes[k] == 0 else bits[k, 0] + bits[k, 1] + bits[k, 2]
+        while held < need:
+            acc |= int(data[at]) << held
+            held += 8
+            at += 1
+        j = driven[k]
+        if axes[k] == 0:
+            if word_quat(acc & ((1 << 38) - 1), out[b, j]) < 0.0:
+                return 2, j
+            acc >>= 38
+            held -= 38
+            continue
+        x, acc, held = _value(acc, held, bits[k, 0], lo[k, 0], step[k, 0])
+        twist, acc, held = _value(acc, held, bits[k, 1], lo[k, 1], step[k, 1])
+        z, acc, held = _value(acc, held, bits[k, 2], lo[k, 2], step[k, 2])
+        _rotation(x, twist, z, pre[k], post[k], out[b, j])
+    return (1, 0) if acc else (0, 0)
+
+
+_RO_I8 = types.Array(types.int64, 1, "A", readonly=True)
+_RO_U8 = types.Array(types.uint8, 1, "C", readonly=True)
+_STATUS = types.UniTuple(types.int64, 3)
+
+
+@njit(_STATUS(_RO_U8, _RO_A[3], _RO_I8, *_KERNEL_CODING, types.float64[:, :, ::1]),
       cache=True)
 def _unpack(data: NDArray[np.uint8], rest: NDArray[np.float64], rest_rows: NDArray[np.int64],
             driven: NDArray[np.int64], axes: NDArray[np.uint8], bits: NDArray[np.uint8],
-            lo: NDArray[np.float64], hi: NDArray[np.float64], pre: NDArray[np.float64],
+            lo: NDArray[np.float64], step: NDArray[np.float64], pre: NDArray[np.float64],
             post: NDArray[np.float64], nbytes: int, out: NDArray[np.float64]
             ) -> tuple[int, int, int]:
     """Fills out (frame b's undriven joints from rest[rest_rows[b]]); (0, 0, 0), (1,
     frame, 0) for padding bits set, (2, frame, joint) for a quaternion no encoder
     writes."""
     for b in range(out.shape[0]):
-        r = rest_rows[b]
-        for j in range(out.shape[1]):  # element by element: a slice copy cost ~0.5 us
-            for i in range(4):
-                out[b, j, i] = rest[r, j, i]
-        acc = 0
-        held = 0
-        at = b * nbytes
-        for k in range(driven.shape[0]):
-            need = 38 if axes[k] == 0 else bits[k, 0] + bits[k, 1] + bits[k, 2]
-            while held < need:
-                acc |= int(data[at]) << held
-                held += 8
-                at += 1
-            j = driven[k]
-            if axes[k] == 0:
-                if word_quat(acc & ((1 << 38) - 1), out[b, j]) < 0.0:
-                    return 2, b, j
-                acc >>= 38
-                held -= 38
-                continue
-            x, acc, held = _value(acc, held, bits[k, 0], lo[k, 0], hi[k, 0])
-            twist, acc, held = _value(acc, held, bits[k, 1], lo[k, 1], hi[k, 1])
-            z, acc, held = _value(acc, held, bits[k, 2], lo[k, 2], hi[k, 2])
-            _rotation(x, twist, z, pre[k], post[k], out[b, j])
-        if acc:
-            return 1, b, 0
+        status, j = _unpack_frame(data, b * nbytes, rest, rest_rows[b], driven, axes, bits,
+                                  lo, step, pre, post, out, b)
+        if status:
+            return status, b, j
     return 0, 0, 0
+
+
+@njit(_STATUS(_RO_U8, types.Array(types.int64, 1, "C", readonly=True),
+              types.Array(types.uint16, 1, "C", readonly=True), _RO_I8, _RO_A[3],
+              *_KERNEL_CODING, types.float64[:, :, ::1]), cache=True)
+def _unpack_known(data: NDArray[np.uint8], ids: NDArray[np.int64],
+                  counts: NDArray[np.uint16], known_ids: NDArray[np.int64],
+                  rest: NDArray[np.float64], driven: NDArray[np.int64],
+                  axes: NDArray[np.uint8], bits: NDArray[np.uint8], lo: NDArray[np.float64],
+                  step: NDArray[np.float64], pre: NDArray[np.float64],
+                  post: NDArray[np.float64], nbytes: int, out: NDArray[np.float64]
+                  ) -> tuple[int, int, int]:
+    """``_unpack`` of a batch whose avatars (``ids``, ``counts`` joints each) are all in
+    a table (``known_ids`` sorted, the rest of each in the same row of ``rest``): ids to
+    rows here, not in Python (a viewer decodes every batch). (3, frame, 0) for an avatar
+    not in the table or of another joint count: the caller takes the general path."""
+    rows = np.empty(ids.shape[0], dtype=np.int64)
+    for b in range(ids.shape[0]):
+        i = np.searchsorted(known_ids, ids[b])
+        if i == known_ids.shape[0] or known_ids[i] != ids[b] or counts[b] != out.shape[1]:
+            return 3, b, 0
+        rows[b] = i
+    return _unpack(data, rest, rows, driven, axes, bits, lo, step, pre, post, nbytes, out)
 
 
 # ------------------------------------------------------------------ a batch's avatars
@@ -404,7 +506,7 @@ class RosterCodings(dict[int, "PoseCoding | None"]):
     def __init__(self) -> None:
         super().__init__()
         self.plans: dict[tuple[bytes, bytes], _Plan] = {}
-        self._table: tuple[PoseCoding, Array, dict[int, int]] | bool | None = False
+        self._table: _Table | bool | None = False
 
     def learn(self, message: object) -> None:
         """Take a roster's avatars and removals (any other message: nothing)."""
@@ -417,21 +519,56 @@ class RosterCodings(dict[int, "PoseCoding | None"]):
         self.plans.clear()
         self._table = False
 
-    def table(self) -> tuple[PoseCoding, Array, dict[int, int]] | None:
+    def table(self) -> _Table | None:
         """When every avatar has a coding of one kind (a room solved on one rig: the
-        usual case): that kind, every avatar's rest stacked, and each one's row in it;
-        else None. A batch of any of them then unpacks in one call, whichever avatars it
-        holds (a room's bursts split into batches of varying avatars)."""
+        usual case): that kind and every avatar's rest, by sorted id; else None. A batch
+        of any of them then unpacks in one call, whichever avatars it holds (a room's
+        bursts split into batches of varying avatars)."""
         if self._table is False:
             codings = list(self.values())
             kinds = {id(_structure(c)) if c is not None else 0 for c in codings}
             if not codings or len(kinds) != 1 or 0 in kinds:
                 self._table = None
             else:
-                rests = np.stack([c.rest for c in codings])  # type: ignore[union-attr]
-                self._table = (codings[0], rests,  # type: ignore[assignment]
-                               {a: r for r, a in enumerate(self)})
+                ids = np.array(sorted(self), dtype=np.int64)
+                rests = np.stack([self[a].rest for a in ids.tolist()])  # type: ignore[union-attr]
+                self._table = _Table(codings[0], readonly(ids), readonly(rests))  # type: ignore[arg-type]
         return self._table  # type: ignore[return-value]
+
+
+class _Table(NamedTuple):
+    """A RosterCodings' avatars when they share one kind of coding."""
+
+    coding: PoseCoding
+    ids: NDArray[np.int64]  # sorted
+    rests: Array  # (avatars, J, 4): the rest of ids[i] in row i
+
+    def unpack(self, ids: NDArray[np.int64], counts: NDArray[np.uint16], data: bytes
+               ) -> Array | None:
+        """(sum of counts, 4) rotations, or None when an avatar is not in the table or
+        has another joint count, or the bytes are not whole frames: the general path
+        then says what is wrong. ValueError (naming the avatar) for bits no encoder
+        writes."""
+        coding = self.coding
+        if len(data) != ids.shape[0] * coding.nbytes:
+            return None
+        out = np.empty((ids.shape[0], coding.num_joints, 4))
+        status, b, j = _unpack_known(np.frombuffer(data, dtype=np.uint8), ids, counts,  # type: ignore[call-arg]
+                                     self.ids, self.rests,
+                                     *coding.unpack_args(), coding.nbytes, out)  # type: ignore[arg-type]
+        if status == 3:
+            return None
+        _raise_for(status, f"avatar {b}", j)
+        return out.reshape(-1, 4)
+
+
+def _raise_for(status: int, frame: str, joint: int) -> None:
+    """A kernel's status as the ValueError it stands for (0: none)."""
+    if status == 1:
+        raise ValueError(f"{frame}: padding bits after the last joint are set")
+    if status == 2:
+        raise ValueError(f"{frame} (joint {joint}): the three sent components are not "
+                         f"those of a unit quaternion")
 
 
 class _Plan:
@@ -462,23 +599,19 @@ class _Plan:
         self.whole = len(self.groups) == 1
 
 
-def unpack_batch(avatar_ids: Sequence[int], joint_counts: Sequence[int],
+def unpack_batch(avatar_ids: Sequence[int] | NDArray[np.int64],
+                 joint_counts: Sequence[int] | NDArray[np.uint16],
                  data: bytes, codings: Codings | None) -> Array:
     """A batch's rotations -> (sum of joint counts, 4), each avatar decoded by its
     coding; ValueError naming the avatar for anything no encoder writes."""
-    ids, counts = list(avatar_ids), list(joint_counts)
-    if isinstance(codings, RosterCodings) and ids:
+    if isinstance(codings, RosterCodings) and len(avatar_ids):
         table = codings.table()
         if table is not None:  # one kind of coding for all: one call, no plan
-            only, rests, row_of = table
-            rows = [row_of.get(a, -1) for a in ids]
-            if -1 not in rows and len(data) == len(ids) * only.nbytes \
-                    and counts.count(only.num_joints) == len(counts):
-                try:
-                    decoded = only.unpack(data, rests, np.array(rows, dtype=np.int64))
-                except ValueError as exc:
-                    raise ValueError(_frame_to_avatar(str(exc), range(len(ids)))) from None
-                return decoded.reshape(-1, 4)
+            decoded = table.unpack(np.ascontiguousarray(avatar_ids, dtype=np.int64),
+                                   np.ascontiguousarray(joint_counts, dtype=np.uint16), data)
+            if decoded is not None:
+                return decoded
+    ids, counts = list(avatar_ids), list(joint_counts)
     if isinstance(codings, RosterCodings):
         key = (np.asarray(ids, dtype=np.int64).tobytes(),
                np.asarray(counts, dtype=np.uint16).tobytes())

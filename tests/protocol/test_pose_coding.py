@@ -16,6 +16,7 @@ from posecast.protocol.pose_coding import (
     QUATERNION_BITS,
     PoseCoding,
     RosterCodings,
+    _cos_sinc,
     coding_bits,
 )
 from posecast.protocol.quantize import MAX_ANGLE_ERROR_DEG, MAX_ANGLE_ERROR_RAD, rotation_angle
@@ -179,3 +180,29 @@ def test_a_coding_is_refused_for_another_skeleton(rig: Rig) -> None:
     with pytest.raises(ValueError, match="coding: rest has 53 rows for 2 joints"):
         AvatarInfo(avatar_id=4, display_name="p", joint_names=sk.names[:2], parents=(-1, 0),
                    rest_offsets=sk.offsets[:2], coding=rig_coding(rig))
+
+
+def test_the_decoders_cos_and_sinc_are_exact_over_every_half_angle() -> None:
+    """The decoder's cos(h) and sin(h)/h: series where h <= ~1.58 (every joint coded
+    within limits the encoder accepts), math's functions beyond; either way within a few
+    ulps of the library's."""
+    for h in np.linspace(0.0, 2.0 * math.pi, 2001):
+        c, sinc = _cos_sinc(h * h)
+        assert abs(c - math.cos(h)) <= 4e-16
+        assert abs(sinc - (math.sin(h) / h if h else 1.0)) <= 4e-16
+
+
+def test_a_coding_seen_before_is_taken_as_validated_then(rig: Rig) -> None:
+    """Viewers in one process (the demo's) share each coding they read; bytes not seen
+    before are validated in full, so a changed coding is still refused."""
+    coding = rig_coding(rig)
+    wire = coding.model_dump()
+    first = PoseCoding.model_validate(wire, context={"wire": True})
+    again = PoseCoding.model_validate(dict(wire), context={"wire": True})
+    assert again is first and first == coding
+    bad = {**wire, "bits": ((17, 0, 0),) * len(coding.driven)}
+    for _ in range(2):  # refused, and not remembered as anything
+        with pytest.raises(ValueError, match="1 to 16 bits"):
+            PoseCoding.model_validate(bad, context={"wire": True})
+    other = {**wire, "rest": coding._rest_wire(np.roll(coding.rest, 1, axis=1))}
+    assert PoseCoding.model_validate(other, context={"wire": True}) is not first

@@ -154,6 +154,28 @@ def test_bvh_read_order_and_loop(walker: BvhSource) -> None:
     assert once.read() is None
 
 
+def test_bvh_smooth_reads_lerp_between_frames_and_wrap(walker: BvhSource) -> None:
+    """Read at 90 Hz from a 120 Hz clip, a sample lies between two frames: positions
+    lerped, rotations lerped on one hemisphere and normalised; the last frame's next is
+    the first."""
+    src = BvhSource(builtin_motion_path(), loop=True, rate_hz=90.0, smooth=True)
+    poses, n = walker.poses, walker.num_frames
+    at = 0.0
+    for _ in range(n + 5):  # past the loop
+        sample = src.read()
+        assert sample is not None
+        i = int(at % n)  # a read just before the wrap lies between the last and first
+        w = at % n - i
+        a, b = poses[i], poses[(i + 1) % n].copy()
+        b[:, 3:] *= np.where(np.sum(a[:, 3:] * b[:, 3:], axis=1) < 0.0, -1.0, 1.0)[:, None]
+        want = a + w * (b - a)
+        want[:, 3:] /= np.linalg.norm(want[:, 3:], axis=1, keepdims=True)
+        np.testing.assert_allclose(sample.poses, want, rtol=0, atol=1e-12)
+        at += 120.0 / 90.0
+        if round(at) >= n:
+            at -= n
+
+
 def test_bvh_tpose_stands_where_the_clip_starts(walker: BvhSource) -> None:
     cal = walker.calibration()
     assert cal.roles == ROLES
