@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import gc
 import itertools
 import math
 import os
@@ -426,6 +427,19 @@ def test_a_player_drops_frames_rather_than_queue_them_behind_a_stalled_server(
         server_side.transport.resume_reading()
         await player.close()
         assert not player.send_now(frame)
+
+    run(test, session)
+
+
+def test_start_up_objects_are_frozen_once_a_session_is_open(session: Session) -> None:
+    """A client's full collections walk only what its session makes: what start-up made
+    is moved to the permanent generation when a session opens (gc.freeze)."""
+    async def test(url: str) -> None:
+        gc.unfreeze()
+        assert gc.get_freeze_count() == 0
+        viewer = await open_session(url, make_hello(url, "spectator", "frozen", "v"))
+        assert gc.get_freeze_count() > 10_000
+        await viewer.close()
 
     run(test, session)
 
