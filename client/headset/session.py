@@ -16,22 +16,19 @@ import logging
 import threading
 from types import TracebackType
 
-import numpy as np
-
 from posecast.client.headset.displays import Display, SampleFeed
 from posecast.client.headset.local_body import LocalBody
 from posecast.client.headset.view import HeadsetStats, HeadsetView
+from posecast.client.measure.reports import REPORT_INTERVAL_S, Reports
 from posecast.client.session.connection import Reconnect, SessionError, stop_task
 from posecast.client.session.player import Player
 from posecast.client.sources.base import DeviceSample, now
 from posecast.client.viewer.interpolation import Interpolator, Mode
 from posecast.client.viewer.scene import SpectatorScene, ViewerSpectator
-from posecast.protocol import AvatarBatch, AvatarRoster, ClockEstimator, ViewerReport
-from posecast.protocol.messages import MAX_REPORT_ROWS
+from posecast.protocol import AvatarBatch, AvatarRoster, ClockEstimator
 
 log = logging.getLogger(__name__)
 
-REPORT_INTERVAL_S = 0.5  # as the browser page's: the server takes 4 a second
 NOTE_S = 3.0  # a message (countdown, reconnecting) stays on the HUD this long
 JOIN_POLL_S = 0.02  # the spectator joins once the player has
 
@@ -104,49 +101,6 @@ class PlayerLink:
             return f"room {room}: stand in a T-pose"
         return f"room {room}: streaming" + (f", {p.stats.reconnects} reconnects"
                                             if p.stats.reconnects else "")
-
-
-class Reports:
-    """The frame loop's figures for the server, taken on its thread and sent on the
-    session's (a reservoir of avatar-frame rows, as the browser page keeps)."""
-
-    def __init__(self, seed: int = 0) -> None:
-        self._lock = threading.Lock()
-        self._pose_to_submit: list[float] = []
-        self._rows: list[tuple[float, float, float]] = []  # t_capture (server), local x2
-        self._seen = 0
-        self._random = np.random.default_rng(seed)
-        self.sent = 0
-        self.enabled = True
-
-    def add(self, pose_to_submit: float, first: list[tuple[float, float]],
-            t_presented: float) -> None:
-        with self._lock:
-            if len(self._pose_to_submit) < MAX_REPORT_ROWS:
-                self._pose_to_submit.append(min(max(pose_to_submit, 0.0), 1.0))
-            for t_capture, t_received in first:
-                self._seen += 1
-                row = (t_capture, t_received, t_presented)
-                if len(self._rows) < MAX_REPORT_ROWS:
-                    self._rows.append(row)
-                else:
-                    k = int(self._random.integers(self._seen))
-                    if k < MAX_REPORT_ROWS:
-                        self._rows[k] = row
-
-    def take(self, clock: ClockEstimator) -> ViewerReport | None:
-        """The report of what was added since the last, on the server clock; None when
-        there is nothing (or the clock is not synced: rows then wait)."""
-        with self._lock:
-            if not self._pose_to_submit or not clock.synced:
-                return None
-            durations, rows = self._pose_to_submit, self._rows
-            self._pose_to_submit, self._rows, self._seen = [], [], 0
-        offset = clock.offset  # one offset for both columns: presented never precedes
-        table = np.array(rows, dtype=np.float64).reshape(-1, 3)
-        return ViewerReport(t_capture=table[:, 0], t_received=table[:, 1] + offset,
-                            t_presented=table[:, 2] + offset,
-                            pose_to_submit=np.array(durations, dtype=np.float64))
 
 
 class Headset:

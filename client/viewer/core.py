@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from posecast.client.measure.latency import LatencyRecorder
+from posecast.client.measure.reports import REPORT_INTERVAL_S, Reports
 from posecast.client.viewer.camera import Camera, OrbitCamera
 from posecast.client.viewer.interpolation import Mode
 from posecast.client.viewer.marker import MARKER_JOINTS, MarkerOverlay, marker_centres
@@ -41,6 +42,7 @@ from posecast.client.viewer.scene import (
     view_camera,
     view_target,
 )
+from posecast.protocol import encode
 
 HUD_REFRESH_S = 0.25  # the HUD's numbers change this often (readable, and cheap)
 HUD_WINDOW = 2000  # latency samples per stage the HUD's percentiles look back over
@@ -100,6 +102,10 @@ class Viewer:
         self._hud_text = ""
         self._hud_at = -math.inf
         self._counted: dict[int, int] = {}  # avatar id -> seq whose arrival was recorded
+        # what it presented, for the server's /metrics (as the browser page and a
+        # headset report theirs): sent from the frame loop, twice a second
+        self.reports = Reports()
+        self._reported_at = -math.inf
 
     def warm_up(self) -> None:
         """Compile every shader now (see Renderer.warm_up), not in the first frame."""
@@ -166,16 +172,38 @@ class Viewer:
         t_server = clock.to_server(t_present) if clock is not None and synced else None
         capture = []
         receive = []
+        first: list[tuple[float, float]] = []  # each frame's first presentation
         for avatar_id, s in zip(drawn.scene.ids, drawn.scene.sampled, strict=True):
             if t_server is not None:
                 capture.append(t_server - s.t_capture)
             if self._counted.get(avatar_id) != s.newest.seq:
                 self._counted[avatar_id] = s.newest.seq
                 receive.append(t_present - s.newest.t_arrival)
+                first.append((s.newest.t_capture, s.newest.t_arrival))
         if capture:
             stats.latency.add_values("capture_to_render", capture)
         if receive:
             stats.latency.add_values("receive_to_render", receive)
+        self.reports.add(None, first, t_present)
+        self._report(t_present)
+
+    def _report(self, t_local: float) -> None:
+        """Send what was presented since the last report when one is due: written at
+        once (the frame loop must not wait), dropped if the connection is backed up."""
+        reports = self.reports
+        if not reports.enabled or t_local - self._reported_at < REPORT_INTERVAL_S:
+            return
+        self._reported_at = t_local
+        spectator = self.scene.spectator
+        session = spectator.session
+        if session is None:
+            return
+        if "viewer_report" in (spectator.stats.last_error or ""):
+            reports.enabled = False  # a server before protocol 1's reports refused one
+            return
+        report = reports.take(session.clock)
+        if report is not None and session.send_now(encode(report)):
+            reports.sent += 1
 
     def fps(self) -> float:
         p = self._presents

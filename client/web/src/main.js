@@ -1,13 +1,16 @@
 // posecast's browser spectator: /?room=NAME joins the room as a spectator over the
 // websocket protocol, draws every avatar skinned with the desktop viewer's mesh, names
 // them and their devices lost now, shows a latency HUD and reports what it presented to
-// the server's /metrics.
+// the server's /metrics. Poses are played out as the desktop viewer plays them
+// (playout.js): interpolated a little behind (the default), the newest frame, or
+// predicted to the present; &mode=NAME picks one, the M key or the button switches.
 
 import "./style.css";
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
 import { now } from "./clock.js";
 import { lostLines } from "./devices.js";
 import { ROOM_NAME_RULE, validRoomName } from "./protocol.js";
+import { DEFAULT_MODE, MODES, Playout } from "./playout.js";
 import { LatencyWindow, Reporter } from "./report.js";
 import { Scene } from "./scene.js";
 import { SkeletonMismatch, bindSkeleton, fitAvatar } from "./skinning.js";
@@ -20,10 +23,12 @@ const room = params.get("room");
 const view = document.getElementById("view");
 const statusBox = document.getElementById("status");
 const hudBox = document.getElementById("hud");
+const modeButton = document.getElementById("mode");
 
 // what the page has done, for people (the HUD) and for tests (window.posecast)
 const stats = { phase: "loading", avatars: 0, drawn: 0, framesReceived: 0, framesPresented: 0,
-  badMessages: 0, reportsSent: 0, firstAvatarS: null, lastError: null, paused: false };
+  badMessages: 0, reportsSent: 0, firstAvatarS: null, lastError: null, paused: false,
+  mode: null };
 window.posecast = stats;
 
 function say(text, kind = "info") {
@@ -55,10 +60,13 @@ async function loadMesh() {
 }
 
 class Spectator {
-  constructor(scene, bind) {
+  constructor(scene, bind, mode) {
     this.scene = scene;
     this.bind = bind;
-    this.latest = new Map(); // avatar id -> its newest frame, drawn or not
+    this.latest = new Map(); // avatar id -> its newest frame's lost devices and times
+    this.playout = new Playout(mode);
+    this.reported = new Map(); // avatar id -> the seq of its newest frame presented
+    this.posed = new Map(); // avatar id -> the rotations it is drawn with now
     this.refused = new Set(); // avatars whose skeleton cannot wear the mesh
     this.reporter = new Reporter();
     this.received = new LatencyWindow();
@@ -125,12 +133,17 @@ class Spectator {
       if (!this.refused.has(info.avatarId)) console.warn(`posecast: not drawing: ${err.message}`);
       this.refused.add(info.avatarId);
     }
-    this.latest.delete(info.avatarId); // a recalibrated avatar waits for its new frames
+    // a recalibrated avatar waits for its new frames (of its new skeleton)
+    this.latest.delete(info.avatarId);
+    this.playout.remove(info.avatarId);
   }
 
   forget(id) {
     this.scene.removeAvatar(id);
     this.latest.delete(id);
+    this.playout.remove(id);
+    this.reported.delete(id);
+    this.posed.delete(id);
     this.refused.delete(id);
   }
 
@@ -142,9 +155,11 @@ class Spectator {
       stats.framesReceived += 1;
       if (clock.synced) this.received.push(tArrival + clock.offset - batch.tCapture[b]);
       if (avatar && avatar.fitted.jointCount === batch.counts[b]) {
-        this.latest.set(id, { rotations: batch.rotations, start,
-          root: batch.roots.subarray(3 * b, 3 * b + 3), tCapture: batch.tCapture[b],
-          tReceived: tArrival, lost: batch.lost[b], drawn: false });
+        const count = batch.counts[b];
+        this.latest.set(id, { lost: batch.lost[b] });
+        this.playout.push(id, { seq: batch.seqs[b], tCapture: batch.tCapture[b],
+          tArrival, rotations: batch.rotations.subarray(4 * start, 4 * (start + count)),
+          root: batch.roots.subarray(3 * b, 3 * b + 3) });
       }
       start += batch.counts[b];
     });
@@ -158,21 +173,41 @@ class Spectator {
     this.updateHud();
   }
 
+  /** The next playout mode (M, or the button), shown on the button and in the HUD. */
+  toggleMode() {
+    this.playout.toggle();
+    this.posed.clear(); // every avatar posed again in the new mode
+    this.showMode();
+  }
+
+  showMode() {
+    stats.mode = this.playout.mode;
+    modeButton.textContent = `${this.playout.mode} (M)`;
+    this.updateHud();
+  }
+
   frame() {
     if (this.paused) return;
-    const fresh = [];
-    for (const [id, f] of this.latest) {
-      if (f.drawn) continue;
-      this.scene.poseAvatar(id, f.rotations, f.start, f.root);
-      this.scene.setLost(id, f.lost);
-      f.drawn = true;
-      fresh.push(f);
+    const clock = this.clock;
+    const sampled = this.playout.sample(now(), clock.synced ? clock.offset : null);
+    const fresh = []; // each avatar-frame once, at its first presentation (as the viewer)
+    for (const [id, s] of sampled) {
+      // a frame already on screen is not posed again (zero-buffer, or a held one);
+      // interpolated and predicted poses are new arrays every time
+      if (this.posed.get(id) !== s.rotations) {
+        this.scene.poseAvatar(id, s.rotations, 0, s.root);
+        this.posed.set(id, s.rotations);
+      }
+      this.scene.setLost(id, this.latest.get(id)?.lost ?? 0);
+      if (this.reported.get(id) !== s.newest.seq) {
+        this.reported.set(id, s.newest.seq);
+        fresh.push(s.newest);
+      }
     }
     this.scene.render();
     const t = now(); // handed to the compositor: the page's "presented"
-    const clock = this.clock;
     for (const f of fresh) {
-      this.reporter.add(f.tCapture, f.tReceived, t);
+      this.reporter.add(f.tCapture, f.tArrival, t);
       if (clock.synced) this.presented.push(t + clock.offset - f.tCapture);
     }
     stats.framesPresented += fresh.length;
@@ -200,6 +235,12 @@ class Spectator {
     else say("");
   }
 
+  /** The interpolation delay of the avatars, their median (seconds). */
+  delay() {
+    const delays = [...this.playout.buffers.values()].map((b) => b.delay).sort((a, b) => a - b);
+    return delays.length ? delays[Math.floor(delays.length / 2)] : 0;
+  }
+
   updateHud() {
     const clock = this.clock;
     const ms = (w, p) => (w.count ? (1000 * w.percentile(p)).toFixed(1).padStart(7) : "      -");
@@ -214,6 +255,8 @@ class Spectator {
         (this.paused ? "paused (Space: go on)" : `${fps.toFixed(0)} fps`),
       clock.synced ? `clock synced to the server's within ${(500 * clock.rtt).toFixed(2)} ms`
         : "clock: syncing with the server",
+      `playout: ${this.playout.mode}${this.playout.mode === "interpolate"
+        ? `, ${(1000 * this.delay()).toFixed(0)} ms behind` : ""}   (M: switch)`,
       "latency ms             p50      p99",
       `capture->received  ${ms(this.received, 50)}  ${ms(this.received, 99)}`,
       `capture->presented ${ms(this.presented, 50)}  ${ms(this.presented, 99)}`,
@@ -233,17 +276,30 @@ async function main() {
     stats.phase = "bad room";
     return;
   }
+  const mode = params.get("mode") ?? DEFAULT_MODE;
+  if (!MODES.includes(mode)) {
+    say(`Unknown playout mode "${mode.slice(0, 40)}": use one of ${MODES.join(", ")}.`, "error");
+    stats.phase = "bad mode";
+    return;
+  }
   document.title = `posecast: ${room}`;
   say(`Loading the avatar for room ${room}...`);
   const { mesh, bind } = await loadMesh();
   const scene = new Scene(view, mesh, bind);
-  const spectator = new Spectator(scene, bind);
+  const spectator = new Spectator(scene, bind, mode);
   stats.phase = "joining";
+  spectator.showMode();
+  modeButton.hidden = false;
+  modeButton.addEventListener("click", () => spectator.toggleMode());
   window.addEventListener("pagehide", () => spectator.leave());
   window.addEventListener("keydown", (e) => {
-    if (e.code !== "Space" || e.repeat) return;
-    e.preventDefault();
-    spectator.togglePause();
+    if (e.repeat) return;
+    if (e.code === "Space") {
+      e.preventDefault();
+      spectator.togglePause();
+    } else if (e.code === "KeyM") {
+      spectator.toggleMode();
+    }
   });
   const loop = () => {
     spectator.frame();

@@ -17,7 +17,6 @@ from PIL import Image
 from posecast.client.builtin import builtin_motion_path
 from posecast.client.headset.local_body import LocalBody
 from posecast.client.headset.room import hud_anchor, place_mirror
-from posecast.client.headset.session import Reports
 from posecast.client.headset.stereo import (
     VIVE_RECOMMENDED_SIZE,
     eye_cameras,
@@ -29,6 +28,7 @@ from posecast.client.headset.stereo import (
     reflected,
     vive_setup,
 )
+from posecast.client.measure.reports import Reports
 from posecast.client.session.spectator import Spectator
 from posecast.client.sources.bvh_source import BvhSource
 from posecast.protocol import ClockEstimator

@@ -86,6 +86,26 @@ def test_headless_viewer_renders_the_moving_avatar(egl: None, session: Session,
     assert stats.spectator.frames_received > 0
 
 
+def test_a_viewer_reports_what_it_presented_to_the_servers_metrics(egl: None,
+                                                                    tmp_path: Path) -> None:
+    """Like the browser page and a headset, the desktop and headless viewers send
+    ViewerReports: /metrics holds every spectator's presentation latency."""
+    fresh = Session()  # counts from zero
+
+    async def test(url: str) -> HeadlessStats:
+        return await run_headless_viewer(url, "viewing", 30, None, W, H, interval_ms=50.0,
+                                         timeout=30.0)
+
+    stats = with_player(test, fresh)
+    assert stats.frames == 30  # 1.5 s: reports go twice a second once the clock syncs
+    m = fresh.metrics
+    assert m.viewer_reports >= 1
+    presented = m.viewer_latency.count("capture_to_presented")
+    # each avatar-frame once, at its first presentation; no more than were received
+    assert stats.spectator is not None
+    assert 1 <= presented <= stats.spectator.frames_received
+
+
 def test_render_a_running_plain_spectator(egl: None, session: Session,
                                           tmp_path: Path) -> None:
     """``posecast demo --render DIR``: a Spectator already running, polled."""

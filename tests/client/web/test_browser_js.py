@@ -8,14 +8,12 @@ decoded here."""
 from __future__ import annotations
 
 import json
-import shutil
-import subprocess
 from pathlib import Path
 
 import msgpack
 import numpy as np
 import pytest
-from conftest import REPO_ROOT
+from node_js import node_path, run_node_test
 
 from posecast.client.viewer.overlay import device_lines
 from posecast.client.viewer.skinning import fit_avatar, pose_matrices
@@ -45,9 +43,6 @@ from posecast.server.web import avatar_document
 from posecast.solver import rotations as R
 from posecast.solver.readers.gltf import load_makehuman
 from posecast.solver.rig import build_rig
-
-WEB = REPO_ROOT / "client" / "web"
-NODE_TIMEOUT = 120.0  # seconds: node starts in well under one
 
 
 def unit(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -178,13 +173,7 @@ def load_without_binds(mesh, inverse_bind):  # type: ignore[no-untyped-def]
 
 @pytest.fixture(scope="module")
 def node() -> str:
-    path = shutil.which("node")
-    if path is None:
-        pytest.skip("no node on this machine: the page's JavaScript tests need Node.js "
-                    "(apt-get install nodejs npm; make setup)")
-    if not (WEB / "node_modules" / "@msgpack" / "msgpack").is_dir():
-        pytest.fail("client/web/node_modules is missing: run make setup (npm ci)")
-    return path
+    return node_path()
 
 
 def test_the_pages_javascript_speaks_the_python_protocol(node: str, tmp_path: Path) -> None:
@@ -203,12 +192,8 @@ def test_the_pages_javascript_speaks_the_python_protocol(node: str, tmp_path: Pa
                                   avatar_id=None, server_time=5.0)).hex()}
     given, written = tmp_path / "fixture.json", tmp_path / "out.json"
     given.write_text(json.dumps(fixture))
-    proc = subprocess.run([node, "--test", str(WEB / "test" / "wire.test.mjs")],
-                          capture_output=True, text=True, timeout=NODE_TIMEOUT, cwd=WEB,
-                          env={"PATH": "/usr/bin:/bin", "POSECAST_JS_FIXTURE": str(given),
-                               "POSECAST_JS_OUT": str(written)})
-    assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-2000:]
-    assert "# fail 0" in proc.stdout and "# skipped 0" in proc.stdout, proc.stdout
+    run_node_test(node, "wire.test.mjs", {"POSECAST_JS_FIXTURE": str(given),
+                                          "POSECAST_JS_OUT": str(written)})
     sent = {k: bytes.fromhex(v) for k, v in json.loads(written.read_text()).items()}
     assert decode_client(sent["hello"]) == Hello(
         protocol_version=PROTOCOL_VERSION, role="spectator", room="lab-1",

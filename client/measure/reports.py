@@ -1,0 +1,69 @@
+"""What a viewer reports to the server of the frames it presented (ViewerReport), so that
+the server's /metrics holds every spectator's presentation latency: the browser page's
+(client/web/src/report.js), a headset's and the desktop and headless viewers'.
+
+Each avatar-frame counts once, when it is first presented: its capture time (server
+clock, from the batch), when its batch reached the viewer's process and when the frame
+was presented (local clock, converted to the server clock as the report is taken, both
+with the same offset: presented never precedes received). A busier room is sampled (a
+reservoir of MAX_REPORT_ROWS rows a report), so that every frame is equally likely to be
+in the server's histograms however many avatars there are.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+from posecast.protocol import ClockEstimator, ViewerReport
+from posecast.protocol.messages import MAX_REPORT_ROWS
+
+REPORT_INTERVAL_S = 0.5  # as the browser page's: the server takes 4 a second
+
+
+class Reports:
+    """A viewer's figures for the server, added by its frame loop and taken by whatever
+    sends them (a headset's frame loop runs on a thread of its own: hence the lock)."""
+
+    def __init__(self, seed: int = 0) -> None:
+        self._lock = threading.Lock()
+        self._pose_to_submit: list[float] = []
+        self._rows: list[tuple[float, float, float]] = []  # t_capture (server), local x2
+        self._seen = 0
+        self._random = np.random.default_rng(seed)
+        self.sent = 0
+        self.enabled = True
+
+    def add(self, pose_to_submit: float | None, first: list[tuple[float, float]],
+            t_presented: float) -> None:
+        """One presented frame: ``first`` (t_capture on the server clock, t_received
+        local) of the avatar-frames it showed for the first time; ``pose_to_submit`` a
+        headset frame's (None for a screen's)."""
+        with self._lock:
+            if pose_to_submit is not None and len(self._pose_to_submit) < MAX_REPORT_ROWS:
+                self._pose_to_submit.append(min(max(pose_to_submit, 0.0), 1.0))
+            for t_capture, t_received in first:
+                self._seen += 1
+                row = (t_capture, t_received, t_presented)
+                if len(self._rows) < MAX_REPORT_ROWS:
+                    self._rows.append(row)
+                else:
+                    k = int(self._random.integers(self._seen))
+                    if k < MAX_REPORT_ROWS:
+                        self._rows[k] = row
+
+    def take(self, clock: ClockEstimator) -> ViewerReport | None:
+        """The report of what was added since the last, on the server clock; None when
+        there is nothing (or the clock is not synced: rows then wait)."""
+        with self._lock:
+            if not (self._pose_to_submit or self._rows) or not clock.synced:
+                return None
+            durations, rows = self._pose_to_submit, self._rows
+            self._pose_to_submit, self._rows, self._seen = [], [], 0
+        offset = clock.offset  # one offset for both columns: presented never precedes
+        table = np.array(rows, dtype=np.float64).reshape(-1, 3)
+        return ViewerReport(t_capture=table[:, 0], t_received=table[:, 1] + offset,
+                            t_presented=table[:, 2] + offset,
+                            pose_to_submit=np.array(durations, dtype=np.float64)
+                            if durations else None)
