@@ -28,7 +28,7 @@ const modeButton = document.getElementById("mode");
 // what the page has done, for people (the HUD) and for tests (window.posecast)
 const stats = { phase: "loading", avatars: 0, drawn: 0, framesReceived: 0, framesPresented: 0,
   badMessages: 0, reportsSent: 0, firstAvatarS: null, lastError: null, paused: false,
-  mode: null };
+  mode: null, poseMs: null };
 window.posecast = stats;
 
 function say(text, kind = "info") {
@@ -71,6 +71,7 @@ class Spectator {
     this.reporter = new Reporter();
     this.received = new LatencyWindow();
     this.presented = new LatencyWindow();
+    this.poseTimes = new LatencyWindow(240); // ms to sample and pose every avatar, a frame
     this.presents = [];
     this.hudAt = -Infinity;
     this.errorUntil = -Infinity;
@@ -177,6 +178,8 @@ class Spectator {
   toggleMode() {
     this.playout.toggle();
     this.posed.clear(); // every avatar posed again in the new mode
+    this.poseTimes = new LatencyWindow(240);
+    stats.poseMs = null;
     this.showMode();
   }
 
@@ -189,7 +192,8 @@ class Spectator {
   frame() {
     if (this.paused) return;
     const clock = this.clock;
-    const sampled = this.playout.sample(now(), clock.synced ? clock.offset : null);
+    const t0 = now();
+    const sampled = this.playout.sample(t0, clock.synced ? clock.offset : null);
     const fresh = []; // each avatar-frame once, at its first presentation (as the viewer)
     for (const [id, s] of sampled) {
       // a frame already on screen is not posed again (zero-buffer, or a held one);
@@ -204,6 +208,7 @@ class Spectator {
         fresh.push(s.newest);
       }
     }
+    this.poseTimes.push(1000 * (now() - t0));
     this.scene.render();
     const t = now(); // handed to the compositor: the page's "presented"
     for (const f of fresh) {
@@ -211,6 +216,7 @@ class Spectator {
       if (clock.synced) this.presented.push(t + clock.offset - f.tCapture);
     }
     stats.framesPresented += fresh.length;
+    stats.poseFrames = this.poseTimes.count;
     stats.avatars = this.scene.avatars.size;
     stats.drawn = [...this.scene.avatars.values()].filter((a) => a.mesh.visible).length;
     if (stats.drawn && stats.firstAvatarS === null) stats.firstAvatarS = t;
@@ -224,6 +230,7 @@ class Spectator {
     this.updateStatus(t);
     if (t - this.hudAt >= HUD_REFRESH_S) {
       this.hudAt = t;
+      stats.poseMs = this.poseTimes.percentile(50); // (a sort: not every frame)
       this.updateHud();
     }
   }
