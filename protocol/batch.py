@@ -166,7 +166,8 @@ class AvatarBatch(Model):
             if not isinstance(data, bytes) or len(data) % 4:
                 raise ValueError(f"{age}: expected packed <f4 bytes, got "
                                  f"{type(data).__name__}")
-            ages = np.frombuffer(data, "<f4").astype(np.float64)
+            with np.errstate(invalid="ignore"):  # a signalling NaN: refused just below
+                ages = np.frombuffer(data, "<f4").astype(np.float64)
             bad = ~(np.abs(ages) <= MAX_AGE_S)  # NaN too
             if bad.any():
                 row = int(np.flatnonzero(bad)[0])
