@@ -33,7 +33,7 @@ VIEW_W, VIEW_H = 800, 450
 AVATAR_FRAMES_APART = 45  # solved frames per avatar between the screenshots: 0.5 s of walk
 # a pixel of an avatar: saturated (the palette's colours; grid, background, text are grey)
 SATURATION = 60
-POSE_FRAMES = 30  # frames a mode's pose time is the median of
+POSE_FRAMES = 20  # frames a mode's pose time is the median of
 HUE_TOLERANCE_DEG = 20.0
 
 
@@ -340,25 +340,23 @@ def test_an_empty_room_a_bad_name_and_no_name_each_say_so(
 def test_the_pages_playout_costs_under_a_millisecond_a_frame_at_16_avatars(
         browser: Any) -> None:
     """Sampling and posing 16 avatars, each mode against zero-buffer (the page's drawing
-    before it had a playout: the newest frame, posed when it is new), in turns on one
-    page: the median of each mode's frames (30 or more: llvmpipe draws 16 skinned avatars
-    at a few frames a second here), twice each."""
+    before it had a playout: the newest frame, posed when it is new), in turn on one
+    page: the median of each mode's frames (20 or more: llvmpipe draws 16 skinned avatars
+    at a few frames a second here; this test is the suite's longest at that)."""
     with LiveRoom("crowd", players=16) as crowd:
         page = Page(browser, f"{crowd.http}/?room=crowd&mode=zero-buffer")
         try:
             page.until("16 avatars drawn", lambda s: s.get("drawn") == 16)
-            medians: dict[str, list[float]] = {}
-            for _ in range(2):
-                for mode in ("zero-buffer", "interpolate", "predict"):
-                    while page.stats()["mode"] != mode:
-                        before = page.stats()["mode"]
-                        page.page.keyboard.press("KeyM")
-                        page.until("the next mode", lambda s, b=before: s["mode"] != b)
-                    page.until(f"{POSE_FRAMES} frames", lambda s: s["poseFrames"] >=
-                               POSE_FRAMES and s["poseMs"] is not None)
-                    medians.setdefault(mode, []).append(page.stats()["poseMs"])
-            ms = {mode: float(np.median(v)) for mode, v in medians.items()}
-            print(f"\nsample + pose 16 avatars, ms a frame (medians, two turns): {ms}")
+            ms: dict[str, float] = {}
+            for mode in ("zero-buffer", "interpolate", "predict"):
+                while page.stats()["mode"] != mode:
+                    before = page.stats()["mode"]
+                    page.page.keyboard.press("KeyM")
+                    page.until("the next mode", lambda s, b=before: s["mode"] != b)
+                page.until(f"{POSE_FRAMES} frames", lambda s: s["poseFrames"] >= POSE_FRAMES
+                           and s["poseMs"] is not None)
+                ms[mode] = page.stats()["poseMs"]
+            print(f"\nsample + pose 16 avatars, ms a frame (medians): {ms}")
             assert page.stats()["drawn"] == 16 and page.errors == []
             for mode in ("interpolate", "predict"):
                 assert ms[mode] - ms["zero-buffer"] <= 1.0, ms
