@@ -248,7 +248,8 @@ class _DevicePoses(Model):
                                  f"({_POSE_ROW_BYTES} bytes each: 3 x <f4, 4 x <i2)")
             n = len(value) // _POSE_ROW_BYTES
             poses: NDArray[np.floating] = np.empty((n, 7))
-            poses[:, :3] = np.frombuffer(value, "<f4", 3 * n).reshape(n, 3)
+            with np.errstate(invalid="ignore"):  # a signalling NaN: the checks refuse it
+                poses[:, :3] = np.frombuffer(value, "<f4", 3 * n).reshape(n, 3)
             poses[:, 3:] = np.frombuffer(value, "<i2", 4 * n, 12 * n).reshape(n, 4) \
                 / POSE_QUAT_SCALE
         elif is_wire(info):
