@@ -63,7 +63,6 @@ class Spectator {
   constructor(scene, bind, mode) {
     this.scene = scene;
     this.bind = bind;
-    this.latest = new Map(); // avatar id -> its newest frame's lost devices and times
     this.playout = new Playout(mode);
     this.reported = new Map(); // avatar id -> the seq of its newest frame presented
     this.posed = new Map(); // avatar id -> the rotations it is drawn with now
@@ -135,13 +134,11 @@ class Spectator {
       this.refused.add(info.avatarId);
     }
     // a recalibrated avatar waits for its new frames (of its new skeleton)
-    this.latest.delete(info.avatarId);
     this.playout.remove(info.avatarId);
   }
 
   forget(id) {
     this.scene.removeAvatar(id);
-    this.latest.delete(id);
     this.playout.remove(id);
     this.reported.delete(id);
     this.posed.delete(id);
@@ -157,10 +154,9 @@ class Spectator {
       if (clock.synced) this.received.push(tArrival + clock.offset - batch.tCapture[b]);
       if (avatar && avatar.fitted.jointCount === batch.counts[b]) {
         const count = batch.counts[b];
-        this.latest.set(id, { lost: batch.lost[b] });
         this.playout.push(id, { seq: batch.seqs[b], tCapture: batch.tCapture[b],
           tArrival, rotations: batch.rotations.subarray(4 * start, 4 * (start + count)),
-          root: batch.roots.subarray(3 * b, 3 * b + 3) });
+          root: batch.roots.subarray(3 * b, 3 * b + 3), lost: batch.lost[b] });
       }
       start += batch.counts[b];
     });
@@ -202,7 +198,7 @@ class Spectator {
         this.scene.poseAvatar(id, s.rotations, 0, s.root);
         this.posed.set(id, s.rotations);
       }
-      this.scene.setLost(id, this.latest.get(id)?.lost ?? 0);
+      this.scene.setLost(id, s.newest.lost); // its newest frame's, whatever is drawn
       if (this.reported.get(id) !== s.newest.seq) {
         this.reported.set(id, s.newest.seq);
         fresh.push(s.newest);

@@ -11,7 +11,8 @@
 //   a weighted least-squares fit through its last samples.
 //
 // Frames are plain objects { seq, tCapture (server clock), tArrival (local clock),
-// rotations (Float64Array, 4 per joint), root (Float64Array of 3) }.
+// rotations (Float64Array, 4 per joint), root (Float64Array of 3) }, and whatever else
+// the page keeps with a frame (its lost devices): a sample's `newest` is that object.
 
 export const MODES = ["interpolate", "zero-buffer", "predict"];
 export const DEFAULT_MODE = "interpolate"; // `posecast view`'s default
