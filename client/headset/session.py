@@ -192,6 +192,5 @@ class Headset:
             except SessionError:
                 continue  # the connection is being made again
             reports.sent += 1
-            if "viewer_report" in (spectator.stats.last_error or ""):
-                reports.enabled = False  # a server before pose_to_submit refuses it
+            if reports.stop_if_refused(spectator.stats.last_error):
                 log.info("headset: this server does not take headset reports")

@@ -53,6 +53,14 @@ class Reports:
                     if k < MAX_REPORT_ROWS:
                         self._rows[k] = row
 
+    def stop_if_refused(self, last_error: str | None) -> bool:
+        """Stop reporting once the server refused a report (its last error names
+        viewer_report: a server before protocol 1, or before a headset's
+        pose_to_submit); True if it did."""
+        if "viewer_report" in (last_error or ""):
+            self.enabled = False
+        return not self.enabled
+
     def take(self, clock: ClockEstimator) -> ViewerReport | None:
         """The report of what was added since the last, on the server clock; None when
         there is nothing (or the clock is not synced: rows then wait)."""

@@ -198,8 +198,7 @@ class Viewer:
         session = spectator.session
         if session is None:
             return
-        if "viewer_report" in (spectator.stats.last_error or ""):
-            reports.enabled = False  # a server before protocol 1's reports refused one
+        if reports.stop_if_refused(spectator.stats.last_error):
             return
         report = reports.take(session.clock)
         if report is not None and session.send_now(encode(report)):

@@ -148,6 +148,15 @@ def test_reports_carry_the_frames_and_wait_for_a_synced_clock() -> None:
     assert report.t_received.tolist() == [pytest.approx(5.0 + offset)]
     assert report.t_presented.tolist() == [pytest.approx(5.004 + offset)]
     assert reports.take(clock) is None  # taken once
+    # a screen's frames carry no pose_to_submit; the rows alone make a report
+    reports.add(None, [(101.0, 6.0)], 6.01)
+    screen = reports.take(clock)
+    assert screen is not None and screen.pose_to_submit is None
+    assert screen.t_capture.tolist() == [101.0]
+    # a server that refuses reports: said once, then no more are sent
+    assert not reports.stop_if_refused("rate_limited: too many pings")
+    assert reports.stop_if_refused("unknown_type: type: unknown message type "
+                                   "'viewer_report'") and not reports.enabled
 
 
 # --------------------------------------------------------------------------- the command
