@@ -7,15 +7,14 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import multiprocessing as mp
-import shutil
 import urllib.request
 from multiprocessing.connection import Connection
-from pathlib import Path
 
 import pytest
 from conftest import serving
 from prometheus_client.parser import text_string_to_metric_families
 
+from posecast.client.bench.browser import BrowserMissingError, find_chromium
 from posecast.client.bench.demo import HEADSET_HZ
 from posecast.client.builtin import builtin_motion_path
 from posecast.client.session.player import Ticker, run_player
@@ -25,24 +24,12 @@ from posecast.server.app import Session
 
 START_TIMEOUT = 60.0  # a loaded machine starts a server and its players slowly
 LOSS_FRAMES = 90  # a losing player's devices are lost this many frames (1 s), then found
-CHROMIUM = Path("/usr/bin/chromium")
-# the closed network makes Chromium hang on its background requests without these
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
-                 "--no-first-run", "--disable-background-networking",
-                 "--disable-component-update", "--disable-sync",
-                 # WebGL on the CPU (SwiftShader), which newer builds want asked for
-                 "--enable-unsafe-swiftshader"]
-
-
 def chromium_or_skip() -> str:
-    """Chromium's path, or a skip that says how to get it."""
-    path = shutil.which("chromium") or (str(CHROMIUM) if CHROMIUM.exists() else None)
-    if path is None:
-        pytest.skip("no chromium on this machine: the browser tests need Debian's "
-                    "(apt-get install chromium; make test installs it)")
-    pytest.importorskip("playwright", reason="the browser tests drive Chromium with "
-                        "playwright (pip install -e '.[dev]')")
-    return path
+    """Chromium's path, or a skip that says how to get it (and playwright)."""
+    try:
+        return find_chromium()
+    except BrowserMissingError as missing:
+        pytest.skip(f"{missing} (make test installs both)")
 
 
 class LosingSource:

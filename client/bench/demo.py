@@ -25,6 +25,12 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any, TypeVar
 
+from posecast.client.bench.browser import (
+    BrowserSpectator,
+    PageMeasure,
+    find_chromium,
+    measure_page,
+)
 from posecast.client.bench.network import NetworkSpec, ProxyProcess
 from posecast.client.builtin import builtin_motion_path
 from posecast.client.measure.display_error import (
@@ -102,6 +108,7 @@ class DemoResult:
     # devices, and losses (carried on by the body model, never refused)
     device_lost_frames: dict[str, int] = field(default_factory=dict)
     device_losses: dict[str, int] = field(default_factory=dict)
+    browser: PageMeasure | None = None  # --browser: what the page showed, measured
 
     def as_json(self) -> dict[str, object]:
         return {"players": self.players, "spectators": self.spectators,
@@ -121,14 +128,19 @@ class DemoResult:
                 "network_counts": self.proxy, "servers": self.servers,
                 "frames_relayed": self.frames_relayed, "devices": self.devices,
                 "dropouts": self.dropouts, "device_lost_frames": self.device_lost_frames,
-                "device_losses": self.device_losses}
+                "device_losses": self.device_losses,
+                "browser": self.browser.as_json() if self.browser is not None else None}
 
     def format_display_error(self) -> str:
         """What a spectator sees, per viewer mode: p50/p95 of the display error."""
         lines = [f"display error over {self.network} (spectator 1's presented pose vs the "
                  "player's true pose at that instant, mm):"]
         for mode, e in self.display_error.as_json().items():
-            lines.append(f"  {mode:<12} p50 {e['p50']:7.1f}  p95 {e['p95']:7.1f}")
+            if mode == "browser" and self.browser is not None:
+                mode = f"browser ({self.browser.mode})"
+            lines.append(f"  {mode:<21} p50 {e['p50']:7.1f}  p95 {e['p95']:7.1f}")
+        if self.browser is not None:
+            lines.append(f"  (the browser page in headless Chromium: {self.browser.describe()})")
         d = self.display_error.delay_json()
         lines.append(f"  interpolation's playout delay: p50 {d['p50']:.1f} ms, "
                      f"p95 {d['p95']:.1f} ms (grows with the jitter it measures)")
@@ -384,15 +396,13 @@ async def run_clients(url: str, players: int, spectators: int, seconds: float,
                       spectator_urls: list[str] | None = None,
                       devices: list[tuple[str, ...]] | None = None,
                       dropouts: DropoutSpec | None = None,
-                      ) -> tuple[int, list[SpectatorStats], dict[str, Any],
-                                 list[CaptureLog], list[Arrival]]:
+                      browser: Mode | None = None) -> Clients:
     """Spectators here, players in a process of their own: a player's capture must not
-    wait behind spectators decoding (on separate machines it would not). Returns the
-    frames the players sent, the spectators' stats, the viewer's result, what the players
-    captured and what spectator 1 received (for the display error). Once the players are
-    done it calls ``stop_server``; the spectators end when the server closes their
+    wait behind spectators decoding (on separate machines it would not). Once the players
+    are done it calls ``stop_server``; the spectators end when the server closes their
     connections (``EmbeddedServer.stop``). ``spectator_urls``: the spectators spread
-    over these servers in turn (the processes of one service); by default ``url``."""
+    over these servers in turn (the processes of one service); by default ``url``.
+    ``browser``: the browser page too, in that playout mode (Chromium, its own process)."""
     far = spectator_urls or [url]
     watchers = [_DemoSpectator(far[i % len(far)], f"spectator {i + 1}", record=i == 0)
                 for i in range(spectators)]
@@ -408,11 +418,18 @@ async def run_clients(url: str, players: int, spectators: int, seconds: float,
               if render is not None else None)
     if viewer is not None:  # a viewer of its own process: drawing holds the GIL
         await viewer.__aenter__()
+    page = (BrowserSpectator(f"http{url.removeprefix('ws')}/?room={ROOM}&mode="
+                             f"{browser.value}&record=1") if browser is not None else None)
+    page_result: dict[str, Any] | None = None
     try:
+        if page is not None:
+            page.__enter__()
         # every spectator in the room before the first frame, so that each is offered
         # every batch (and the players' imports done meanwhile)
         await asyncio.wait_for(asyncio.gather(
-            asyncio.sleep(1.0), *(w.in_room.wait() for w in watchers)), JOIN_TIMEOUT)
+            asyncio.sleep(1.0), *(w.in_room.wait() for w in watchers),
+            *([asyncio.to_thread(page.wait_joined)] if page is not None else [])),
+            JOIN_TIMEOUT)
         for task in spectator_tasks:
             if task.done():
                 task.result()  # one that could not join: its SessionError
@@ -435,7 +452,11 @@ async def run_clients(url: str, players: int, spectators: int, seconds: float,
         if isinstance(player_stats, tuple):  # ("error", why)
             raise DemoError(f"a player was disconnected: {player_stats[1]}")
         await asyncio.to_thread(process.join, 10)
+        if page is not None:  # its recording, before the server closes its connection
+            page_result = await asyncio.to_thread(page.finish)
     finally:
+        if page is not None:
+            await asyncio.to_thread(page.__exit__, None, None, None)
         if viewer is not None:
             await viewer.__aexit__(None, None, None)
         # the players have left; the server solves what is pending and empties the
@@ -445,8 +466,23 @@ async def run_clients(url: str, players: int, spectators: int, seconds: float,
                                              STOP_TIMEOUT)
     captures = [log for _, _, log in player_stats if log is not None]
     arrivals = (watchers[0].arrivals or []) if watchers else []
-    return (sum(sent for sent, _, _ in player_stats), list(spectator_stats),
-            viewer.result if viewer is not None else {}, captures, arrivals)
+    return Clients(sum(sent for sent, _, _ in player_stats), list(spectator_stats),
+                   viewer.result if viewer is not None else {}, captures, arrivals,
+                   page_result)
+
+
+@dataclass
+class Clients:
+    """What ``run_clients`` saw: the frames the players sent, the spectators' stats, the
+    viewer's result, what the players captured, what spectator 1 received (for the
+    display error) and the browser page's recording, stats and console errors."""
+
+    frames_sent: int
+    spectators: list[SpectatorStats]
+    viewed: dict[str, Any]
+    captures: list[CaptureLog]
+    arrivals: list[Arrival]
+    page: dict[str, Any] | None = None
 
 
 def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
@@ -456,7 +492,8 @@ def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
              network: NetworkSpec | None = None,
              limits: ServerLimits | None = None, servers: int = 1,
              devices: list[str] | None = None,
-             dropouts: DropoutSpec | None = None) -> DemoResult:
+             dropouts: DropoutSpec | None = None,
+             browser: str | None = None) -> DemoResult:
     """The session; with ``render``, a headless viewer also draws the room to PNG files
     there and its ``capture_to_render`` joins the latency stages. ``busy``: the server
     busy-polls (``server.busy``); by default when it has a core of its own. ``helper``:
@@ -467,7 +504,12 @@ def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
     the players on the first, which owns the room; the spectators spread over all, and
     the others' ``relay`` hop (published to received) joins the latency stages.
     ``devices``: the players' tracker sets (``--devices`` specs), taken in turn;
-    ``dropouts``: every player loses devices at random."""
+    ``dropouts``: every player loses devices at random. ``browser``: the browser page
+    joins too, in this playout mode (headless Chromium; BrowserMissingError without it), and
+    its display error is measured beside the desktop modes'."""
+    browser_mode = Mode(browser) if browser is not None else None
+    if browser_mode is not None:
+        find_chromium()  # before any process starts: one line that says how to get it
     motion = motion or builtin_motion_path()
     devices = devices or [DEFAULT_SET]
     sets = [parse_devices(d) for d in devices]
@@ -503,12 +545,14 @@ def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
                 server.stop()
                 if others:  # once the owner's last batches have crossed Redis
                     threading.Timer(RELAY_SETTLE_S, stop_others).start()
-            frames_sent, spectator_stats, viewed, captures, arrivals = _run(run_clients(
+            clients = _run(run_clients(
                 url, players, spectators, seconds, motion, render, render_mode,
-                cores, stop_servers, [url, *(o.url for o in others)], sets, dropouts))
+                cores, stop_servers, [url, *(o.url for o in others)], sets, dropouts,
+                browser_mode))
         finally:
             if cores:
                 os.sched_setaffinity(0, cores)
+    spectator_stats, viewed = clients.spectators, clients.viewed
     latency = LatencyRecorder.merged(s.latency for s in spectator_stats)
     for stage, samples in viewed.get("samples", {}).items():
         latency.add_values(stage, samples)
@@ -521,9 +565,16 @@ def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
     def total(name: str) -> int:
         return sum(int(m.get(name, 0)) for m in every)  # type: ignore[call-overload]
     rejected = metrics.get("rejected", {})
+    # after the session, from what was recorded: it cost the session nothing
+    rig = _server_rig()
+    display_error = measure_display_error(clients.captures, clients.arrivals, rig, solver)
+    page = None
+    if browser_mode is not None and clients.page is not None:
+        page = measure_page(clients.page, browser_mode, clients.captures, rig, solver)
+        display_error.errors_mm["browser"] = page.errors_mm
     return DemoResult(
         players=players, spectators=spectators, seconds=seconds,
-        frames_sent=frames_sent,
+        frames_sent=clients.frames_sent,
         frames_solved=total("frames_solved"),
         frames_delivered=sum(s.frames_received for s in spectator_stats),
         frames_dropped=total("frames_dropped"),
@@ -535,8 +586,7 @@ def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
         frames_rejected=total("frames_rejected"),
         frames_unsendable=total("frames_unsendable"),
         viewer=render is not None, network=str(network) if network else "loopback",
-        # after the session, from what was recorded: it cost the session nothing
-        display_error=measure_display_error(captures, arrivals, _server_rig(), solver),
+        display_error=display_error, browser=page,
         proxy=proxy.stats if proxy is not None else {}, servers=servers,
         frames_relayed=total("frames_relayed"),
         devices=[devices[i % len(devices)] for i in range(players)],

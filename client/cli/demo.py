@@ -5,16 +5,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from typing import TYPE_CHECKING
 
 from posecast.server.limits import ServerLimits
 
-if TYPE_CHECKING:
-
-    pass
-
 
 def _demo(args: argparse.Namespace) -> int:
+    from posecast.client.bench.browser import BrowserFailedError, BrowserMissingError
     from posecast.client.bench.demo import DemoError, run_demo
     from posecast.client.bench.redis_process import RedisMissingError
     from posecast.client.measure.latency import format_latency_table
@@ -30,12 +26,15 @@ def _demo(args: argparse.Namespace) -> int:
                           busy=None if args.busy_poll else False,
                           helper=None if args.helper else False, network=args.network,
                           limits=limits, servers=args.servers, devices=args.devices,
-                          dropouts=args.dropouts)
+                          dropouts=args.dropouts, browser=args.browser)
     except RedisMissingError as err:
         print(f"posecast demo: --servers {args.servers}: {err}", file=sys.stderr)
         return 1
     except DemoError as err:  # e.g. a link whose stalls make the server refuse frames
         print(f"posecast demo: {err}", file=sys.stderr)
+        return 1
+    except (BrowserMissingError, BrowserFailedError) as err:
+        print(f"posecast demo: --browser: {err}", file=sys.stderr)
         return 1
     if args.json:
         print(json.dumps(result.as_json()))

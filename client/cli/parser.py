@@ -497,6 +497,12 @@ def _parser() -> argparse.ArgumentParser:
                     metavar="RATE[,max=S][,seed=N]",
                     help="every player loses each device but the head at random, RATE "
                          "times a minute for 0.05 to S s (default 2)")
+    dm.add_argument("--browser", nargs="?", const="interpolate", default=None,
+                    choices=("interpolate", "zero-buffer", "predict"), metavar="MODE",
+                    help="one more spectator: the browser page in headless Chromium, in "
+                         "this playout mode (interpolate, zero-buffer or predict; default "
+                         "the page's, interpolate); its display error is measured beside "
+                         "the desktop viewer's")
     dm.add_argument("--json", action="store_true", help="print one JSON document")
 
     lv = sub.add_parser("latency-video", help="end-to-end latency from a video of the "

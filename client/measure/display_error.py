@@ -20,15 +20,16 @@ clock on one machine, so T means the same instant to all of them.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from posecast.client.sources.base import DeviceSample, PoseSource
 from posecast.client.viewer.interpolation import Interpolator, Mode
-from posecast.protocol import AvatarBatch
+from posecast.protocol import AvatarBatch, AvatarFrame
 from posecast.server.avatars import AvatarSolver
 from posecast.solver import rotations as R
 from posecast.solver.fk import forward_kinematics
@@ -114,13 +115,27 @@ class RecordingSource:
                           np.array(self._times), np.stack(self._poses))
 
 
+class Received(Protocol):
+    """What a viewer was given in one arrival: an AvatarBatch, or the browser page's
+    frames as it recorded them (client/bench/browser.py)."""
+
+    @property
+    def avatar_ids(self) -> NDArray[np.int64]: ...
+
+    @property
+    def joint_counts(self) -> NDArray[np.int64]: ...
+
+    @property
+    def frames(self) -> Sequence[AvatarFrame]: ...
+
+
 @dataclass
 class Arrival:
     """A batch as a spectator received it: its local time and clock offset then."""
 
     t_local: float
     offset: float | None  # server - local, seconds; None before the clock synced
-    batch: AvatarBatch
+    batch: AvatarBatch | Received
 
 
 @dataclass
@@ -148,9 +163,15 @@ def _percentiles(values: Array) -> dict[str, float]:
 def measure_display_error(captures: list[CaptureLog], arrivals: list[Arrival], rig: Rig,
                           solver: str = "analytic", rate_hz: float = PRESENT_HZ,
                           settle_s: float = SETTLE_S,
-                          modes: tuple[Mode, ...] = tuple(Mode)) -> DisplayError:
+                          modes: tuple[Mode, ...] = tuple(Mode),
+                          instants: Array | None = None,
+                          instant_offsets: Array | None = None,
+                          pushed_before: NDArray[np.int64] | None = None) -> DisplayError:
     """The display error of one spectator's ``arrivals`` against the players' ``captures``
-    (see the module docstring), in every viewer mode."""
+    (see the module docstring), in every viewer mode: at ``rate_hz``, or at the viewer's
+    own presentation ``instants`` (its local clock, ascending; the browser page's), each
+    sampled with its clock offset then (``instant_offsets``; NaN: not synced) and having
+    been given the first ``pushed_before`` arrivals (see ``replay_playout``)."""
     result = DisplayError({m.value: np.zeros(0) for m in modes})
     logs = {c.avatar_id: c for c in captures}
     first: dict[int, float] = {}
@@ -161,8 +182,19 @@ def measure_display_error(captures: list[CaptureLog], arrivals: list[Arrival], r
     if not ids or not arrivals:
         return result
     start = min(first[i] for i in ids) + settle_s
-    instants = np.arange(start, arrivals[-1].t_local, 1.0 / rate_hz)
-    presented = _replay(arrivals, instants, ids, modes)
+    if instants is None:
+        instants = np.arange(start, arrivals[-1].t_local, 1.0 / rate_hz)
+    else:
+        within = (instants >= start) & (instants <= arrivals[-1].t_local)
+        instants = instants[within]
+        if instant_offsets is not None:
+            instant_offsets = instant_offsets[within]
+        if pushed_before is not None:
+            pushed_before = pushed_before[within]
+        if not len(instants):
+            return result
+    presented = replay_playout(arrivals, instants, ids, modes, instant_offsets,
+                               pushed_before)
     truth_solver = AvatarSolver(rig, solver)
     skeleton, body = rig.skeleton, sorted({j for js in rig.roles.values() for j in js})
     errors: dict[str, list[Array]] = {m.value: [] for m in modes}
@@ -201,17 +233,22 @@ def measure_display_error(captures: list[CaptureLog], arrivals: list[Arrival], r
 
 
 @dataclass
-class _Presented:
+class Presented:
     rotations: dict[str, dict[int, Array]]  # mode -> avatar -> (N, J, 4)
     roots: dict[str, dict[int, Array]]  # mode -> avatar -> (N, 3)
     valid: dict[int, NDArray[np.bool_]]  # avatar -> (N,): every mode had a pose
     delays: dict[int, Array]  # avatar -> (N,) interpolation's playout delay, s
 
 
-def _replay(arrivals: list[Arrival], instants: Array, ids: list[int],
-            modes: tuple[Mode, ...]) -> _Presented:
+def replay_playout(arrivals: list[Arrival], instants: Array, ids: list[int],
+                   modes: tuple[Mode, ...], instant_offsets: Array | None = None,
+                   pushed_before: NDArray[np.int64] | None = None) -> Presented:
     """What a viewer in each mode presents at each instant, having received the batches
-    that arrived by then (the buffers are pure: the same inputs, the same poses)."""
+    that arrived by then (the buffers are pure: the same inputs, the same poses); with
+    the clock offset of the newest arrival, or the instant's own (``instant_offsets``,
+    NaN: not synced), as the browser page samples with its clock's latest. The browser
+    page is given a frame when its message event runs, which may come a frame after its
+    arrival stamp: ``pushed_before[k]`` arrivals had been given by instant k."""
     viewers = {m: Interpolator(mode=m) for m in modes}
     # every viewer is fed alike, so any one's buffers have interpolation's playout delay
     delay_of = next(iter(viewers.values()))
@@ -224,13 +261,17 @@ def _replay(arrivals: list[Arrival], instants: Array, ids: list[int],
     delays = {i: np.zeros(n) for i in ids}
     next_arrival, offset = 0, None
     for k, now in enumerate(instants.tolist()):
-        while next_arrival < len(arrivals) and arrivals[next_arrival].t_local <= now:
+        given = len(arrivals) if pushed_before is None else int(pushed_before[k])
+        while next_arrival < given and (pushed_before is not None
+                                        or arrivals[next_arrival].t_local <= now):
             a = arrivals[next_arrival]
             next_arrival += 1
             offset = a.offset if a.offset is not None else offset
             for frame in a.batch.frames:
                 for v in viewers.values():
                     v.push(frame, a.t_local)
+        if instant_offsets is not None:
+            offset = None if np.isnan(instant_offsets[k]) else float(instant_offsets[k])
         to_server = _shifted(offset) if offset is not None else None
         for mode, viewer in viewers.items():
             shown = viewer.sample(now, to_server)
@@ -244,7 +285,7 @@ def _replay(arrivals: list[Arrival], instants: Array, ids: list[int],
         for i in ids:
             buf = delay_of.buffers.get(i)
             delays[i][k] = buf.delay if buf is not None else 0.0
-    return _Presented(rotations, roots, valid, delays)
+    return Presented(rotations, roots, valid, delays)
 
 
 def _shifted(offset: float) -> Callable[[float], float]:

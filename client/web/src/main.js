@@ -11,6 +11,7 @@ import { now } from "./clock.js";
 import { lostLines } from "./devices.js";
 import { ROOM_NAME_RULE, validRoomName } from "./protocol.js";
 import { DEFAULT_MODE, MODES, Playout } from "./playout.js";
+import { Recording } from "./recording.js";
 import { LatencyWindow, Reporter } from "./report.js";
 import { Scene } from "./scene.js";
 import { SkeletonMismatch, bindSkeleton, fitAvatar } from "./skinning.js";
@@ -72,6 +73,8 @@ class Spectator {
     this.presented = new LatencyWindow();
     this.poseTimes = new LatencyWindow(240); // ms to sample and pose every avatar, a frame
     this.presents = [];
+    // &record=1 (posecast demo --browser): what the playout got and gave, for the demo
+    this.recording = params.get("record") === "1" ? new Recording() : null;
     this.hudAt = -Infinity;
     this.errorUntil = -Infinity;
     this.paused = false;
@@ -154,9 +157,11 @@ class Spectator {
       if (clock.synced) this.received.push(tArrival + clock.offset - batch.tCapture[b]);
       if (avatar && avatar.fitted.jointCount === batch.counts[b]) {
         const count = batch.counts[b];
-        this.playout.push(id, { seq: batch.seqs[b], tCapture: batch.tCapture[b],
-          tArrival, rotations: batch.rotations.subarray(4 * start, 4 * (start + count)),
-          root: batch.roots.subarray(3 * b, 3 * b + 3), lost: batch.lost[b] });
+        const frame = { seq: batch.seqs[b], tCapture: batch.tCapture[b], tArrival,
+          rotations: batch.rotations.subarray(4 * start, 4 * (start + count)),
+          root: batch.roots.subarray(3 * b, 3 * b + 3), lost: batch.lost[b] };
+        this.playout.push(id, frame);
+        this.recording?.push(id, frame, clock.synced ? clock.offset : null);
       }
       start += batch.counts[b];
     });
@@ -189,7 +194,9 @@ class Spectator {
     if (this.paused) return;
     const clock = this.clock;
     const t0 = now();
-    const sampled = this.playout.sample(t0, clock.synced ? clock.offset : null);
+    const offset = clock.synced ? clock.offset : null;
+    const sampled = this.playout.sample(t0, offset);
+    this.recording?.present(t0, offset, sampled);
     const fresh = []; // each avatar-frame once, at its first presentation (as the viewer)
     for (const [id, s] of sampled) {
       // a frame already on screen is not posed again (zero-buffer, or a held one);
@@ -290,6 +297,7 @@ async function main() {
   const { mesh, bind } = await loadMesh();
   const scene = new Scene(view, mesh, bind);
   const spectator = new Spectator(scene, bind, mode);
+  window.posecastRecording = () => spectator.recording?.dump() ?? null;
   stats.phase = "joining";
   spectator.showMode();
   modeButton.hidden = false;

@@ -22,8 +22,9 @@ from typing import Any
 
 import numpy as np
 import pytest
-from browser_room import CHROMIUM_ARGS, LiveRoom, chromium_or_skip
+from browser_room import LiveRoom, chromium_or_skip
 
+from posecast.client.bench.browser import CHROMIUM_ARGS
 from posecast.client.builtin import builtin_motion_path
 from posecast.client.sources.bvh_source import BvhSource
 from posecast.server.web import STATIC_DIR

@@ -1,0 +1,48 @@
+"""`posecast demo --browser`: the browser page in headless Chromium as one more spectator
+over an emulated 40 +- 10 ms link, its display error measured at its own presentation
+instants beside the desktop viewer's (display_error_mm.browser), from a replay that gives
+every root the page drew."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+from browser_room import chromium_or_skip
+
+from posecast.client.bench.browser import REPLAY_TOLERANCE_M
+
+WAIT = 300.0  # a subprocess that spawns a server, players, the emulator and Chromium
+
+
+def test_the_demo_measures_the_browser_pages_display_error_beside_the_desktops() -> None:
+    chromium_or_skip()
+    done = subprocess.run([sys.executable, "-m", "posecast.client.cli", "demo",
+                           "--players", "2", "--spectators", "1", "--seconds", "6",
+                           "--network", "40ms+-10ms", "--browser", "predict", "--json"],
+                          capture_output=True, text=True, timeout=WAIT,
+                          env={**os.environ, "PYTHONWARNINGS": "ignore"})
+    assert done.returncode == 0, done.stderr
+    doc = json.loads(done.stdout)
+    errors, page = doc["display_error_mm"], doc["browser"]
+    assert set(errors) == {"interpolate", "zero-buffer", "predict", "browser"}
+    assert page["mode"] == "predict" and page["console_errors"] == []
+    # a few frames a second at least (SwiftShader draws on the CPU), 2 avatars each
+    assert errors["browser"]["n"] >= 10 and errors["browser"]["p50"] > 0.0
+    # the replay is of what the page did: every root it drew, to rounding
+    assert page["replay_checked"] >= errors["browser"]["n"]
+    assert page["replay_gap_m"] <= REPLAY_TOLERANCE_M
+    # predicting, the page is far from the newest frame's stutter over this link
+    assert errors["browser"]["p50"] < errors["zero-buffer"]["p50"] / 2
+
+
+def test_a_bad_browser_mode_is_one_line() -> None:
+    done = subprocess.run([sys.executable, "-m", "posecast.client.cli", "demo",
+                           "--browser", "fastest"], capture_output=True, text=True,
+                          timeout=WAIT)
+    assert done.returncode == 2
+    assert done.stderr.strip() == (
+        "posecast demo: --browser: invalid choice: 'fastest' (choose from 'interpolate', "
+        "'zero-buffer', 'predict') (see posecast demo --help)")
