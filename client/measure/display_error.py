@@ -147,13 +147,13 @@ class DisplayError:
     playout_delay_ms: Array = field(default_factory=lambda: np.zeros(0))
 
     def as_json(self) -> dict[str, dict[str, float]]:
-        return {mode: _percentiles(e) for mode, e in self.errors_mm.items()}
+        return {mode: percentiles(e) for mode, e in self.errors_mm.items()}
 
     def delay_json(self) -> dict[str, float]:
-        return _percentiles(self.playout_delay_ms)
+        return percentiles(self.playout_delay_ms)
 
 
-def _percentiles(values: Array) -> dict[str, float]:
+def percentiles(values: Array) -> dict[str, float]:
     if len(values) == 0:
         return {"p50": 0.0, "p95": 0.0, "n": 0}
     p50, p95 = np.percentile(values, [50.0, 95.0])

@@ -29,13 +29,17 @@ def test_the_demo_measures_the_browser_pages_display_error_beside_the_desktops()
     errors, page = doc["display_error_mm"], doc["browser"]
     assert set(errors) == {"interpolate", "zero-buffer", "predict", "browser"}
     assert page["mode"] == "predict" and page["console_errors"] == []
-    # a few frames a second at least (SwiftShader draws on the CPU), 2 avatars each
-    assert errors["browser"]["n"] >= 10 and errors["browser"]["p50"] > 0.0
+    # at 60 Hz as the desktop's, fed what the page received
+    assert errors["browser"]["n"] > 30 and errors["browser"]["p50"] > 0.0
+    # at the page's own frames: a few a second at least (SwiftShader draws on the CPU)
+    own = page["own_frames"]
+    assert own["n"] >= 10 and own["p50"] > 0.0
     # the replay is of what the page did: every root it drew, to rounding
-    assert page["replay_checked"] >= errors["browser"]["n"]
+    assert page["replay_checked"] >= own["n"]
     assert page["replay_gap_m"] <= REPLAY_TOLERANCE_M
     # predicting, the page is far from the newest frame's stutter over this link
-    assert errors["browser"]["p50"] < errors["zero-buffer"]["p50"] / 2
+    for e in (errors["browser"], own):
+        assert e["p50"] < errors["zero-buffer"]["p50"] / 2
 
 
 def test_a_bad_browser_mode_is_one_line() -> None:
