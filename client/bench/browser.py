@@ -264,12 +264,17 @@ class PageMeasure:
     replay_gap_m: float
     replay_checked: int
     console_errors: list[str]
+    stamps_back: int = 0  # arrivals the page stamped before the one ahead of them
+    # the page's clock estimate minus the true server clock (this machine's), its median
+    # over the frames: the error of the offset its prediction reckons with
+    clock_error_ms: float = float("nan")
 
     def as_json(self) -> dict[str, object]:
         return {"mode": self.mode, "own_frames": percentiles(self.own_errors_mm),
                 "presented": self.presented, "fps": round(self.fps, 1),
                 "replay_gap_m": self.replay_gap_m, "replay_checked": self.replay_checked,
-                "console_errors": self.console_errors}
+                "console_errors": self.console_errors, "stamps_back": self.stamps_back,
+                "clock_error_ms": self.clock_error_ms}
 
     def describe(self) -> str:
         own = percentiles(self.own_errors_mm)
@@ -285,7 +290,10 @@ def measure_page(page: dict[str, Any], mode: Mode, captures: list[CaptureLog], r
     Python playout (see the module docstring): at 60 Hz, as the desktop modes', and at
     the page's own instants, as it drew them."""
     recording = PageRecording.from_dump(page["recording"], wall_minus_perf())
-    at_60hz = measure_display_error(captures, recording.arrivals, rig, solver, modes=(mode,))
+    # given at their stamps, in the order of their stamps: as a display's frames would get
+    # them (a worker stamps a message when it takes it, so its stamps should already be)
+    stamped = sorted(recording.arrivals, key=lambda a: a.t_local)
+    at_60hz = measure_display_error(captures, stamped, rig, solver, modes=(mode,))
     own = measure_display_error(captures, recording.arrivals, rig, solver, modes=(mode,),
                                 instants=recording.instants,
                                 instant_offsets=recording.offsets,
@@ -293,6 +301,11 @@ def measure_page(page: dict[str, Any], mode: Mode, captures: list[CaptureLog], r
     gap, checked = recording.replay_gap_m(mode)
     t = recording.instants
     fps = (len(t) - 1) / (t[-1] - t[0]) if len(t) > 1 and t[-1] > t[0] else 0.0
+    stamps = np.array([a.t_local for a in recording.arrivals])
+    offsets = np.array([np.nan if a.offset is None else a.offset for a in recording.arrivals])
+    clock_error = (float(np.nanmedian(offsets)) * 1e3 if np.isfinite(offsets).any()
+                   else float("nan"))
     return PageMeasure(mode.value, at_60hz.errors_mm.get(mode.value, np.zeros(0)),
                        own.errors_mm.get(mode.value, np.zeros(0)), len(t), fps, gap, checked,
-                       list(page.get("errors", [])))
+                       list(page.get("errors", [])), int((np.diff(stamps) < 0).sum()),
+                       round(clock_error, 3))

@@ -584,6 +584,16 @@ def _parser() -> argparse.ArgumentParser:
                     help="whole runs, reporting each count's median and the median of "
                          "the runs' ratios (a run takes ~5 min)")
     bf.add_argument("--json", action="store_true", help="print one JSON document")
+    bpg = bsub.add_parser("page", help="ms a frame the browser page's playout takes to "
+                          "sample and pose the avatars, per mode (headless Chromium)")
+    bpg.add_argument("--avatars", type=arg.positive_int, default=16,
+                     help="players walking in the room, each drawn")
+    bpg.add_argument("--frames", type=arg.positive_int, default=20,
+                     help="frames a mode's turn is the median of (Chromium draws a few a "
+                          "second on the CPU)")
+    bpg.add_argument("--turns", type=arg.positive_int, default=3,
+                     help="alternated turns of the three modes")
+    bpg.add_argument("--json", action="store_true", help="print one JSON document")
     bhs = bsub.add_parser("headset", help="ms from a headset frame's poses to its submission "
                           "(play --hmd's frame loop) at a Vive's eye size and fractions")
     bhs.add_argument("--scales", type=_positive_floats, default=[1.0, 0.5], metavar="F,...",

@@ -237,6 +237,8 @@ def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
         return 0
     if args.command == "bench" and args.bench == "fanout":
         return _bench_fanout(args)
+    if args.command == "bench" and args.bench == "page":
+        return _bench_page(args)
     if args.command == "bench" and args.bench == "headset":
         from posecast.client.bench.headset import bench_headset, format_headset_table, say
         from posecast.client.viewer.renderer import GLUnavailableError
@@ -272,6 +274,21 @@ def _bench_fanout(args: argparse.Namespace) -> int:
     except RuntimeError as err:  # spectators that could not join, a server that died
         return fail("bench fanout", err)
     print(json.dumps(doc) if args.json else format_fanout_table(doc))
+    return 0
+
+
+def _bench_page(args: argparse.Namespace) -> int:
+    from posecast.client.bench.browser import BrowserMissingError
+    from posecast.client.bench.page import bench_page, format_page_table
+
+    try:  # a line per turn and mode as it ends: Chromium draws a few frames a second
+        doc = bench_page(args.avatars, args.frames, args.turns,
+                         progress=lambda line: print(line, file=sys.stderr, flush=True))
+    except BrowserMissingError as err:
+        return fail("bench page", err)
+    except RuntimeError as err:  # a page that never drew its avatars, a server that died
+        return fail("bench page", err)
+    print(json.dumps(doc) if args.json else format_page_table(doc))
     return 0
 
 

@@ -29,7 +29,7 @@ const modeButton = document.getElementById("mode");
 // what the page has done, for people (the HUD) and for tests (window.posecast)
 const stats = { phase: "loading", avatars: 0, drawn: 0, framesReceived: 0, framesPresented: 0,
   badMessages: 0, reportsSent: 0, firstAvatarS: null, lastError: null, paused: false,
-  mode: null, poseMs: null };
+  mode: null, poseMs: null, poseMsP99: null };
 window.posecast = stats;
 
 function say(text, kind = "info") {
@@ -181,6 +181,7 @@ class Spectator {
     this.posed.clear(); // every avatar posed again in the new mode
     this.poseTimes = new LatencyWindow(240);
     stats.poseMs = null;
+    stats.poseMsP99 = null;
     this.showMode();
   }
 
@@ -234,6 +235,7 @@ class Spectator {
     if (t - this.hudAt >= HUD_REFRESH_S) {
       this.hudAt = t;
       stats.poseMs = this.poseTimes.percentile(50); // (a sort: not every frame)
+      stats.poseMsP99 = this.poseTimes.percentile(99);
       this.updateHud();
     }
   }
