@@ -19,6 +19,7 @@ import math
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import cast
 
@@ -63,7 +64,10 @@ def tracker_frame(seq: int, sample: DeviceSample, clock_offset: float) -> Tracke
 
 
 # --------------------------------------------------------------------------- pacing
-SlotCallback = Callable[[int], None]
+# called at slot k; what it returns (if anything) is called once every subscriber was:
+# the send, so that a process of many players reads all their sources first, then writes
+# their frames back to back (as separate machines' would arrive: together)
+SlotCallback = Callable[[int], Callable[[], None] | None]
 
 
 class Ticker:
@@ -78,8 +82,10 @@ class Ticker:
     One Ticker may be shared by many players in one process (the demo's 16): one timer
     calls them one after the other, so their frames leave together, to be solved in one
     batch, with no task switch between one player's frame and the next (a task per
-    player woken by a future spread 16 frames over ~0.7 ms, ~45 us each). A callback
-    that raises is logged; the others keep their schedule.
+    player woken by a future spread 16 frames over ~0.7 ms, ~45 us each). In two steps:
+    every callback reads its source and makes its frame, then every send it returned
+    writes, so that the reads do not spread the writes apart. A callback that raises is
+    logged; the others keep their schedule.
     """
 
     def __init__(self, rate_hz: float, start: float | None = None,
@@ -139,11 +145,20 @@ class Ticker:
             self._timer = asyncio.get_running_loop().call_later(early, self._fire, k)
             return
         self.last = k
+        sends = []
         for callback in list(self._subscribers):  # one may unsubscribe in its call
             try:
-                callback(k)
+                send = callback(k)
             except Exception:  # a broken subscriber must not stop the others' schedule
                 log.exception("ticker: a slot callback failed")
+            else:
+                if send is not None:
+                    sends.append(send)
+        for send in sends:
+            try:
+                send()
+            except Exception:
+                log.exception("ticker: a slot's send failed")
         self._timer = None
         if self._subscribers:
             self._arm()
@@ -292,10 +307,10 @@ class Player:
         deadline = t_first + seconds if t_first is not None and seconds is not None \
             else math.inf
 
-        def on_slot(k: int) -> None:
+        def on_slot(k: int) -> Callable[[], None] | None:
             nonlocal slot, deadline, t_first
             if ended.done():
-                return
+                return None
             if slot >= 0:
                 self.stats.slots_skipped += k - slot - 1
             slot = k
@@ -308,16 +323,19 @@ class Player:
                 elif now() >= deadline:
                     ended.set_result("time")
                 else:
-                    sample = self._send_frame(session)
-                    if sample is None:
+                    made = self._make_frame(session)
+                    if made is None:
                         ended.set_result("source")
-                    else:
-                        if t_first is None:
-                            t_first = self._t_first = sample.t_capture
-                            deadline = t_first + seconds if seconds is not None else math.inf
-                        self.stats.seconds = sample.t_capture - t_first
+                        return None
+                    sample, frame = made
+                    if t_first is None:
+                        t_first = self._t_first = sample.t_capture
+                        deadline = t_first + seconds if seconds is not None else math.inf
+                    self.stats.seconds = sample.t_capture - t_first
+                    return partial(self._send_frame, session, frame, sample.roles)
             except Exception as exc:  # the reader's SessionError, a source's error
                 ended.set_exception(exc)
+            return None
 
         self.ticker.subscribe(on_slot)
         try:
@@ -325,10 +343,10 @@ class Player:
         finally:
             self.ticker.unsubscribe(on_slot)
 
-    def _send_frame(self, session: Session) -> DeviceSample | None:
-        """One slot: a fresh calibration first if one was asked for, then the source's
-        pose, read (its capture time), encoded and written at once. None when the source
-        has ended."""
+    def _make_frame(self, session: Session) -> tuple[DeviceSample, bytes] | None:
+        """One slot's first step: a fresh calibration sent first if one was asked for,
+        then the source's pose read (its capture time) and encoded, for ``_send_frame``.
+        None when the source has ended."""
         if self._recalibrate:
             try:
                 message = calibrate_message(self.source.calibration(), session.clock.offset)
@@ -345,15 +363,18 @@ class Player:
             return None
         if self.on_sample is not None:
             self.on_sample(sample)
-        if session.send_now(encode_tracker_frame(
-                self._seq, sample.roles, sample.poses, sample.t_capture,
-                session.clock.offset)):
+        return sample, encode_tracker_frame(self._seq, sample.roles, sample.poses,
+                                            sample.t_capture, session.clock.offset)
+
+    def _send_frame(self, session: Session, frame: bytes, roles: tuple[str, ...]) -> None:
+        """One slot's second step: the frame written at once (dropped if it cannot be:
+        the server is not keeping up, or going, and this pose is stale next time)."""
+        if session.send_now(frame):
             self._seq += 1
             self.stats.frames_sent += 1
-            self.stats.count_devices(sample.roles)
-        else:  # the server is not keeping up (or going): this pose is stale next time
+            self.stats.count_devices(roles)
+        else:
             self.stats.frames_dropped += 1
-        return sample
 
     async def _send_calibration(self, session: Session) -> None:
         self._recalibrate = False

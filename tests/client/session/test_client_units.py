@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import socket
 import time
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -238,6 +239,44 @@ def test_shared_ticker_calls_every_player_on_one_slot() -> None:
         for c in [*callbacks[1:], broken]:
             ticker.unsubscribe(c)
         assert ticker._timer is None  # nobody left: no timer
+
+    asyncio.run(main())
+
+
+def test_a_shared_ticker_reads_every_player_then_sends_every_frame() -> None:
+    """Two steps a slot: each callback makes its frame, then each send it returned
+    writes, in the players' order, so that reading one player's source does not hold up
+    the frames of those before it; a send that raises leaves the others sent."""
+    async def main() -> None:
+        ticker = Ticker(50.0)
+        events: list[str] = []
+        done = asyncio.Event()
+
+        def player(i: int) -> Callable[[int], Callable[[], None] | None]:
+            def on_slot(k: int) -> Callable[[], None] | None:
+                events.append(f"read {i}")
+                if i == 3:
+                    return None  # a player with nothing to send this slot
+                return lambda: (events.append(f"send {i}"), done.set())
+
+            return on_slot
+
+        def broken_send() -> None:
+            raise RuntimeError("a bug in one player's send")
+
+        players = [player(i) for i in range(4)]
+        broken = lambda k: broken_send  # noqa: E731
+        ticker.subscribe(players[0])
+        ticker.subscribe(broken)
+        for p in players[1:]:
+            ticker.subscribe(p)
+        async with asyncio.timeout(30):
+            await done.wait()
+        for p in [*players, broken]:
+            ticker.unsubscribe(p)
+        assert ticker._timer is None
+        assert events[:7] == ["read 0", "read 1", "read 2", "read 3",
+                              "send 0", "send 1", "send 2"]
 
     asyncio.run(main())
 
