@@ -359,7 +359,10 @@ def test_bench_page_times_each_playout_mode_at_16_avatars() -> None:
     assert doc["avatars"] == 16 and doc["frames"] == POSE_FRAMES
     assert set(doc["modes"]) == {"zero-buffer", "interpolate", "predict"}
     for m in doc["modes"].values():
-        assert len(m["turns_ms"]) == 1 and 0.0 < m["median_ms"] <= m["p99_ms"]
+        # timed: a p99 above zero (a median may round to 0 where the page's clock is
+        # coarse and posing is fast)
+        assert len(m["turns_ms"]) == 1 and 0.0 <= m["median_ms"] <= m["p99_ms"]
+        assert m["p99_ms"] > 0.0
     assert set(doc["over_zero_buffer_ms"]) == {"interpolate", "predict"}
     # one line per turn and mode as it ends
     assert done.stderr.count("turn 1/1") == 3
