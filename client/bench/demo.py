@@ -25,6 +25,8 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any, TypeVar
 
+import numpy as np
+
 from posecast.client.bench.browser import (
     BrowserSpectator,
     PageMeasure,
@@ -109,6 +111,9 @@ class DemoResult:
     device_lost_frames: dict[str, int] = field(default_factory=dict)
     device_losses: dict[str, int] = field(default_factory=dict)
     browser: PageMeasure | None = None  # --browser: what the page showed, measured
+    # spectator 1's clock estimate minus the server's clock (one machine: the true offset
+    # is 0), its median over the batches: what its prediction reckons with
+    clock_error_ms: float | None = None
 
     def as_json(self) -> dict[str, object]:
         return {"players": self.players, "spectators": self.spectators,
@@ -129,7 +134,8 @@ class DemoResult:
                 "frames_relayed": self.frames_relayed, "devices": self.devices,
                 "dropouts": self.dropouts, "device_lost_frames": self.device_lost_frames,
                 "device_losses": self.device_losses,
-                "browser": self.browser.as_json() if self.browser is not None else None}
+                "browser": self.browser.as_json() if self.browser is not None else None,
+                "clock_error_ms": self.clock_error_ms}
 
     def format_display_error(self) -> str:
         """What a spectator sees, per viewer mode: p50/p95 of the display error."""
@@ -141,6 +147,10 @@ class DemoResult:
             lines.append(f"  {mode:<21} p50 {e['p50']:7.1f}  p95 {e['p95']:7.1f}")
         if self.browser is not None:
             lines.append(f"  (the browser page in headless Chromium: {self.browser.describe()})")
+            if self.clock_error_ms is not None:
+                lines.append(f"  clock estimates against the server's: the page's "
+                             f"{self.browser.clock_error_ms:+.1f} ms, spectator 1's "
+                             f"{self.clock_error_ms:+.1f} ms")
         d = self.display_error.delay_json()
         lines.append(f"  interpolation's playout delay: p50 {d['p50']:.1f} ms, "
                      f"p95 {d['p95']:.1f} ms (grows with the jitter it measures)")
@@ -587,12 +597,20 @@ def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
         frames_unsendable=total("frames_unsendable"),
         viewer=render is not None, network=str(network) if network else "loopback",
         display_error=display_error, browser=page,
+        clock_error_ms=_clock_error_ms(clients.arrivals),
         proxy=proxy.stats if proxy is not None else {}, servers=servers,
         frames_relayed=total("frames_relayed"),
         devices=[devices[i % len(devices)] for i in range(players)],
         dropouts=str(dropouts) if dropouts is not None else None,
         device_lost_frames=_per_role(every, "device_lost_frames"),
         device_losses=_per_role(every, "device_losses"))
+
+
+def _clock_error_ms(arrivals: list[Arrival]) -> float | None:
+    """The median of a spectator's clock offsets (server minus local) as its batches
+    came: on one machine, perf_counter for both, so the error of its estimate."""
+    offsets = [a.offset for a in arrivals if a.offset is not None]
+    return round(float(np.median(offsets)) * 1e3, 3) if offsets else None
 
 
 def _per_role(metrics: list[dict[str, object]], name: str) -> dict[str, int]:

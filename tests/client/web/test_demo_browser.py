@@ -40,6 +40,7 @@ def test_the_demo_measures_the_browser_pages_display_error_beside_the_desktops()
     # the page's clock, moved onto this machine's, against the server's: off by the page's
     # estimate only, at most half a round trip (2 x 30-50 ms)
     assert abs(page["clock_error_ms"]) <= 50.0
+    assert abs(doc["clock_error_ms"]) <= 50.0  # spectator 1's, over the same link
     # predicting, the page is far from the newest frame's stutter over this link
     for e in (errors["browser"], own):
         assert e["p50"] < errors["zero-buffer"]["p50"] / 2
