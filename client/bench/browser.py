@@ -32,6 +32,7 @@ from numpy.typing import NDArray
 from posecast.client.measure.display_error import (
     Arrival,
     CaptureLog,
+    clock_error_ms,
     measure_display_error,
     percentiles,
     replay_playout,
@@ -175,7 +176,7 @@ def wall_minus_perf() -> float:
 class BrowserSpectator:
     """The page at ``url`` (``/?room=R&mode=M&record=1``) in headless Chromium, in a
     process of its own, for the length of a ``with`` block: ``wait_joined`` once it is in
-    the room, ``finish`` for its recording, its stats and what it said on its console."""
+    the room, ``finish`` for its recording and what it said on its console."""
 
     def __init__(self, url: str) -> None:
         chromium = find_chromium()
@@ -197,8 +198,7 @@ class BrowserSpectator:
             raise BrowserFailedError(f"the browser page did not join: {said}")
 
     def finish(self) -> dict[str, Any]:
-        """{"recording", "stats", "errors"}: what the page recorded, its window.posecast,
-        its console's errors."""
+        """{"recording", "errors"}: what the page recorded, its console's errors."""
         self._pipe.send("finish")
         if not self._pipe.poll(START_TIMEOUT_S):
             raise BrowserFailedError("the browser page did not hand over its recording")
@@ -239,8 +239,7 @@ def _browser_process(pipe: Connection, url: str, chromium: str) -> None:
             if pipe.recv() != "finish":
                 return
             recording = page.evaluate("() => window.posecastRecording()")
-            stats = page.evaluate("() => ({...window.posecast})")
-            pipe.send({"recording": recording, "stats": stats, "errors": errors})
+            pipe.send({"recording": recording, "errors": errors})
             pipe.poll(START_TIMEOUT_S)  # "close"
             browser.close()
     except Exception as exc:  # said to the demo, which raises it
@@ -267,7 +266,7 @@ class PageMeasure:
     stamps_back: int = 0  # arrivals the page stamped before the one ahead of them
     # the page's clock estimate minus the true server clock (this machine's), its median
     # over the frames: the error of the offset its prediction reckons with
-    clock_error_ms: float = float("nan")
+    clock_error_ms: float | None = None  # None: the page's clock never synced
 
     def as_json(self) -> dict[str, object]:
         return {"mode": self.mode, "own_frames": percentiles(self.own_errors_mm),
@@ -302,10 +301,7 @@ def measure_page(page: dict[str, Any], mode: Mode, captures: list[CaptureLog], r
     t = recording.instants
     fps = (len(t) - 1) / (t[-1] - t[0]) if len(t) > 1 and t[-1] > t[0] else 0.0
     stamps = np.array([a.t_local for a in recording.arrivals])
-    offsets = np.array([np.nan if a.offset is None else a.offset for a in recording.arrivals])
-    clock_error = (float(np.nanmedian(offsets)) * 1e3 if np.isfinite(offsets).any()
-                   else float("nan"))
     return PageMeasure(mode.value, at_60hz.errors_mm.get(mode.value, np.zeros(0)),
                        own.errors_mm.get(mode.value, np.zeros(0)), len(t), fps, gap, checked,
                        list(page.get("errors", [])), int((np.diff(stamps) < 0).sum()),
-                       round(clock_error, 3))
+                       clock_error_ms(recording.arrivals))

@@ -25,8 +25,6 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any, TypeVar
 
-import numpy as np
-
 from posecast.client.bench.browser import (
     BrowserSpectator,
     PageMeasure,
@@ -40,6 +38,7 @@ from posecast.client.measure.display_error import (
     CaptureLog,
     DisplayError,
     RecordingSource,
+    clock_error_ms,
     measure_display_error,
 )
 from posecast.client.measure.latency import LatencyRecorder
@@ -147,10 +146,10 @@ class DemoResult:
             lines.append(f"  {mode:<21} p50 {e['p50']:7.1f}  p95 {e['p95']:7.1f}")
         if self.browser is not None:
             lines.append(f"  (the browser page in headless Chromium: {self.browser.describe()})")
-            if self.clock_error_ms is not None:
-                lines.append(f"  clock estimates against the server's: the page's "
-                             f"{self.browser.clock_error_ms:+.1f} ms, spectator 1's "
-                             f"{self.clock_error_ms:+.1f} ms")
+            ms = [f"{e:+.1f} ms" if e is not None else "never synced"
+                  for e in (self.browser.clock_error_ms, self.clock_error_ms)]
+            lines.append(f"  clock estimates against the server's: the page's {ms[0]}, "
+                         f"spectator 1's {ms[1]}")
         d = self.display_error.delay_json()
         lines.append(f"  interpolation's playout delay: p50 {d['p50']:.1f} ms, "
                      f"p95 {d['p95']:.1f} ms (grows with the jitter it measures)")
@@ -597,20 +596,13 @@ def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
         frames_unsendable=total("frames_unsendable"),
         viewer=render is not None, network=str(network) if network else "loopback",
         display_error=display_error, browser=page,
-        clock_error_ms=_clock_error_ms(clients.arrivals),
+        clock_error_ms=clock_error_ms(clients.arrivals),
         proxy=proxy.stats if proxy is not None else {}, servers=servers,
         frames_relayed=total("frames_relayed"),
         devices=[devices[i % len(devices)] for i in range(players)],
         dropouts=str(dropouts) if dropouts is not None else None,
         device_lost_frames=_per_role(every, "device_lost_frames"),
         device_losses=_per_role(every, "device_losses"))
-
-
-def _clock_error_ms(arrivals: list[Arrival]) -> float | None:
-    """The median of a spectator's clock offsets (server minus local) as its batches
-    came: on one machine, perf_counter for both, so the error of its estimate."""
-    offsets = [a.offset for a in arrivals if a.offset is not None]
-    return round(float(np.median(offsets)) * 1e3, 3) if offsets else None
 
 
 def _per_role(metrics: list[dict[str, object]], name: str) -> dict[str, int]:

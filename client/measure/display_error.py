@@ -153,6 +153,14 @@ class DisplayError:
         return percentiles(self.playout_delay_ms)
 
 
+def clock_error_ms(arrivals: list[Arrival]) -> float | None:
+    """The median clock offset (server minus local, ms) a viewer had as its batches came,
+    None before it synced. In the demo both clocks are this machine's perf_counter, so
+    the true offset is 0 and this is the error of the viewer's estimate."""
+    offsets = [a.offset for a in arrivals if a.offset is not None]
+    return round(float(np.median(offsets)) * 1e3, 3) if offsets else None
+
+
 def percentiles(values: Array) -> dict[str, float]:
     if len(values) == 0:
         return {"p50": 0.0, "p95": 0.0, "n": 0}
