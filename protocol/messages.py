@@ -64,6 +64,7 @@ from posecast.protocol.validation import (
     pose_wire,
     readonly,
     time_column,
+    unit_quaternions,
 )
 
 # 2: rosters name each avatar's devices, batches say which of them are lost (any
@@ -380,6 +381,57 @@ MAX_REPORT_ROWS = 128
 MAX_POSE_TO_SUBMIT_S = 1.0
 
 
+# poses a report may carry (ShownPose, ~450 bytes each for 53 joints): with 128 rows, a
+# report stays within MAX_CLIENT_MESSAGE_BYTES
+MAX_REPORT_POSES = 4
+
+
+class ShownPose(Model):
+    """One avatar as a viewer presented it: the pose its playout gave at ``t_presented``
+    (server clock), for the server's display error (``server.display_error``). The
+    rotations travel as int16 levels round(q 32767), as a tracker frame's quaternions:
+    ~0.003 deg, nothing beside a display error of millimetres."""
+
+    avatar_id: Int
+    t_presented: Time
+    root: Array  # (3,) metres, float64 on the wire
+    rotations: Array  # (J, 4) local joint rotations, x y z w
+
+    @field_validator("root", mode="plain")
+    @classmethod
+    def _root(cls, value: Any, info: ValidationInfo) -> Array:
+        rows = as_rows(value, 3, is_wire(info))
+        if rows.shape[0] != 1:
+            raise ValueError(f"expected one position, got {rows.shape[0]}")
+        check_positions(rows)
+        return readonly(rows[0])
+
+    @field_validator("rotations", mode="plain")
+    @classmethod
+    def _rotations(cls, value: Any, info: ValidationInfo) -> Array:
+        if isinstance(value, bytes | bytearray | memoryview):
+            if len(value) % 8:
+                raise ValueError(f"{len(value)} bytes is not a whole number of rotations "
+                                 "(4 x <i2 each)")
+            q = np.frombuffer(value, "<i2").reshape(-1, 4) / POSE_QUAT_SCALE
+        elif is_wire(info):
+            raise ValueError(f"expected packed rotations (4 x <i2 each), got "
+                             f"{type(value).__name__}")
+        else:
+            q = as_rows(value, 4, False)
+        if not 1 <= q.shape[0] <= MAX_JOINTS:
+            raise ValueError(f"{q.shape[0]} rotations; 1 to {MAX_JOINTS} allowed")
+        return readonly(unit_quaternions(q))
+
+    @field_serializer("root")
+    def _root_wire(self, root: Array) -> bytes:
+        return np.ascontiguousarray(root, dtype="<f8").tobytes()
+
+    @field_serializer("rotations")
+    def _rotations_wire(self, q: Array) -> bytes:
+        return np.rint(np.clip(q, -1.0, 1.0) * POSE_QUAT_SCALE).astype("<i2").tobytes()
+
+
 class ViewerReport(Model):
     """A spectator's own stages of avatar-frames it presented, for the server's metrics.
 
@@ -395,6 +447,10 @@ class ViewerReport(Model):
     the viewer's own clock (no clock offset in it). A report may carry only these, with
     no avatar-frame rows. A server that predates the field refuses the report (unknown
     field), and the viewer then stops reporting.
+
+    ``shown``: a few avatars as presented (a sample of every avatar at every frame), for
+    the server's display error; ``viewer`` and ``mode`` label it in /metrics. A server
+    that predates them refuses the report like one that predates pose_to_submit.
     """
 
     type: Literal["viewer_report"] = "viewer_report"
@@ -402,6 +458,9 @@ class ViewerReport(Model):
     t_received: Array  # (n,)
     t_presented: Array  # (n,)
     pose_to_submit: Array | None = None  # (m,) seconds, 0 <= each <= MAX_POSE_TO_SUBMIT_S
+    shown: tuple[ShownPose, ...] = Field(default=(), max_length=MAX_REPORT_POSES)
+    viewer: Literal["browser", "desktop", "headset"] | None = None
+    mode: Literal["zero-buffer", "interpolate", "predict"] | None = None
 
     @field_validator("t_capture", "t_received", "t_presented", mode="plain")
     @classmethod
@@ -439,10 +498,10 @@ class ViewerReport(Model):
 
     @model_validator(mode="after")
     def _presented_after_received(self) -> ViewerReport:
-        if self.t_capture.shape[0] == 0 and (self.pose_to_submit is None
-                                             or self.pose_to_submit.shape[0] == 0):
+        if self.t_capture.shape[0] == 0 and not self.shown and (
+                self.pose_to_submit is None or self.pose_to_submit.shape[0] == 0):
             raise ValueError("an empty report: at least one row of avatar-frames or of "
-                             "pose_to_submit")
+                             "pose_to_submit, or a shown pose")
         early = np.flatnonzero(self.t_presented < self.t_received)
         if early.size:
             row = int(early[0])
@@ -514,7 +573,25 @@ SERVER_MESSAGES: tuple[type[Model], ...] = (Welcome, AvatarRoster, AvatarBatch, 
 MESSAGE_TYPES: dict[str, type[Model]] = {
     cls.model_fields["type"].default: cls for cls in CLIENT_MESSAGES + SERVER_MESSAGES}
 
-__all__ = ["PROTOCOL_VERSION", "SUPPORTED_VERSIONS", "AvatarBatch", "AvatarFrame",
-           "AvatarInfo", "AvatarRoster", "Calibrate", "ClientMessage", "Error", "Hello",
-           "Leave", "Message", "Ping", "Pong", "Redirect", "ServerMessage", "TrackerFrame",
-           "ViewerReport", "Welcome"]
+__all__ = [
+    "PROTOCOL_VERSION",
+    "SUPPORTED_VERSIONS",
+    "AvatarBatch",
+    "AvatarFrame",
+    "AvatarInfo",
+    "AvatarRoster",
+    "Calibrate",
+    "ClientMessage",
+    "Error",
+    "Hello",
+    "Leave",
+    "Message",
+    "Ping",
+    "Pong",
+    "Redirect",
+    "ServerMessage",
+    "ShownPose",
+    "TrackerFrame",
+    "ViewerReport",
+    "Welcome",
+]

@@ -5,9 +5,10 @@ shows in its help before any of the protocol's code (pydantic, numpy) loads.
 # Any message. The largest legitimate one is a full roster: ~2.5 KB per 60-joint avatar,
 # so 1 MiB holds a room of a few hundred avatars.
 MAX_MESSAGE_BYTES = 1 << 20
-# What a server accepts from a client (hello, tracker frame, calibrate, ping, leave):
-# a 10-device tracker frame is ~700 bytes, a hello with the longest token ~1200 bytes.
-MAX_CLIENT_MESSAGE_BYTES = 4096
+# What a server accepts from a client (hello, tracker frame, calibrate, ping, leave,
+# viewer report): a 10-device tracker frame is ~340 bytes, a hello with the longest token
+# ~1200 bytes, the largest viewer report (128 rows, 4 shown poses of 53 joints) ~5 KB.
+MAX_CLIENT_MESSAGE_BYTES = 8192
 MAX_JOINTS = 256  # the MakeHuman rig has 53, large BVH skeletons ~100
 MAX_AVATARS = 1024  # per roster or batch message
 MAX_NAME_CHARS = 64  # room, display and joint names

@@ -61,6 +61,8 @@ from posecast.server.busy import BusyPoll
 from posecast.server.clock import now
 from posecast.server.cluster import Cluster
 from posecast.server.cluster_rooms import ClusterRooms
+from posecast.server.display_error import TICK_S as DISPLAY_TICK_S
+from posecast.server.display_error import DisplayErrorMeter
 from posecast.server.eviction import Watchdog, close_now
 from posecast.server.helper import spare_cores
 from posecast.server.http_routes import Reply
@@ -154,6 +156,9 @@ class Session(ClusterRooms, SpectatingConnections):
                                    self.limits.log_interval_s)
         # stalled spectators and idle players, looked at once a second (``watch``)
         self.watchdog = Watchdog(self.limits.backlog_evict_s, self.limits.idle_player_s)
+        # what viewers showed against what was solved, measured a tick at a time (``measure``)
+        self.display = DisplayErrorMeter(self.rig, self.metrics.display_error,
+                                         self.metrics.display_samples)
         self._rejection_logs: dict[ServerConnection, RejectionLog] = {}
         self.busy = BusyPoll(self.rig, solver) if busy else None
         # every room's avatars in one solver (avatar ids are the session's), so that one
@@ -643,6 +648,13 @@ class Session(ClusterRooms, SpectatingConnections):
         while True:
             await asyncio.sleep(self.watchdog.interval)
             self.evict(now())
+
+    async def measure(self) -> None:
+        """Run while serving: the display error of the samples viewers sent
+        (``server.display_error``), off the frame path."""
+        while True:
+            await asyncio.sleep(DISPLAY_TICK_S)
+            self.display.tick(list(self.rooms.values()), now())
 
     def evict(self, t: float) -> None:
         dog, rooms = self.watchdog, self.rooms.values()

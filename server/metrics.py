@@ -7,6 +7,7 @@ from collections import Counter
 from dataclasses import dataclass, field
 
 from posecast.protocol.roles import roles_of_bits
+from posecast.server.display_error import DisplayErrorHistograms
 from posecast.server.latency import (
     HEADSET_STAGES,
     RelayLatency,
@@ -56,6 +57,11 @@ class Metrics:
     headset_latency: StageHistograms = field(
         default_factory=lambda: StageHistograms(HEADSET_STAGES))
     relay_latency: RelayLatency = field(default_factory=RelayLatency)
+    # the avatars viewers showed against the solved ones (ViewerReport.shown): metres,
+    # per viewer kind and playout mode; and what became of the samples (measured; not
+    # measurable: no history around their instant; skipped: over a tick's reservoir)
+    display_error: DisplayErrorHistograms = field(default_factory=DisplayErrorHistograms)
+    display_samples: Counter[str] = field(default_factory=Counter)
     # an avatar's devices missing from its player's frames (never an error: the body
     # carries on), by role: tracker frames that lacked it, and losses (tracked in the
     # avatar's frame before, not in this one); devices mounted after calibration
@@ -88,4 +94,6 @@ class Metrics:
                 "limited": dict(self.limited),
                 "device_lost_frames": dict(self.device_lost_frames),
                 "device_losses": dict(self.device_losses),
-                "devices_mounted": dict(self.devices_mounted)}
+                "devices_mounted": dict(self.devices_mounted),
+                "display_error_mm": self.display_error.as_json(),
+                "display_samples": dict(self.display_samples)}

@@ -139,6 +139,22 @@ class SessionCollector(Collector):
                 buckets, total = histograms.cumulative(stage)
                 latency.add_metric([stage], buckets, total)
         yield latency
+        shown = HistogramMetricFamily(
+            "posecast_display_error_meters", "How far the avatars viewers showed were from "
+            "the avatars as solved at the same instant: per shown pose a viewer sampled "
+            "(ViewerReport.shown), the mean distance over the body's joints, by the "
+            "viewer's kind and playout mode.", labels=["viewer", "mode"])
+        for key in sorted(m.display_error.counts):
+            buckets, total = m.display_error.cumulative(key)
+            shown.add_metric(list(key), buckets, total)
+        yield shown
+        samples = CounterMetricFamily(
+            "posecast_display_samples", "Shown poses viewers sampled: measured; unmeasured "
+            "(no solved frames around their instant); skipped (over what a tick "
+            "measures).", labels=["outcome"])
+        for outcome in ("measured", "unmeasured", "skipped"):
+            samples.add_metric([outcome], m.display_samples[outcome])
+        yield samples
 
 
 def session_registry(session: Session) -> CollectorRegistry:

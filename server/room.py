@@ -43,6 +43,7 @@ from posecast.server.avatars import AvatarSolver
 from posecast.server.busy import OpenBursts
 from posecast.server.cadence import Cadence
 from posecast.server.clock import now
+from posecast.server.display_error import PoseHistory
 from posecast.server.framing import binary_frame, write_frame
 from posecast.server.limits import ServerLimits
 from posecast.server.metrics import Metrics
@@ -92,6 +93,12 @@ class SharedBatch:
             self._framed = binary_frame(self.encoded())
         return self._framed
 
+    def solved_rows(self) -> tuple[list[int], np.ndarray, np.ndarray, np.ndarray]:
+        """Ids, capture times (B,), roots (B, 3) and rotations (B, J, 4): what a room's
+        PoseHistory keeps (server.display_error)."""
+        ids, _, roots, rotations, t_capture = self.args[:5]
+        return ids, np.asarray(t_capture), roots, rotations
+
     def frame(self, index: int) -> AvatarFrame:
         if self._batch is None:
             self._batch = AvatarBatch.from_arrays(*self.args, t_sent=self.args[-1],
@@ -112,6 +119,16 @@ class RelayedBatch(SharedBatch):
         self._framed = None
         self.t_sent = batch.t_sent
         self._batch = batch
+
+    def solved_rows(self) -> tuple[list[int], np.ndarray, np.ndarray, np.ndarray]:
+        b = self._batch
+        assert b is not None
+        counts = b.joint_counts
+        joints = int(counts[0]) if len(counts) else 0
+        if not len(counts) or (counts != joints).any():  # mixed skeletons: none kept
+            return [], np.zeros(0), np.zeros((0, 3)), np.zeros((0, joints, 4))
+        return (b.avatar_ids.tolist(), b.t_capture, b.roots,
+                b.rotations.reshape(len(counts), joints, 4))
 
 
 Delivery = tuple[SharedBatch, int]  # a batch and the index of one avatar in it
@@ -192,6 +209,10 @@ class Room:
     _roster_removed: dict[int, None] = field(default_factory=dict)
     _roster_timer: asyncio.TimerHandle | None = None
     _roster_sent_at: float = -math.inf  # loop time of the last roster sent
+    # its avatars' solved poses of the last seconds, kept while viewers send samples of
+    # what they showed (server.display_error); None while no one does
+    history: PoseHistory | None = None
+    history_used_at: float = -math.inf  # server clock of the last sample taken
 
     # ------------------------------------------------------------------ players
     def find_by_resume(self, resume: str | None) -> Avatar | None:
@@ -338,6 +359,8 @@ class Room:
             self.metrics.frames_discarded += 1
         for s in self.spectators.values():
             s.outbox.forget(avatar_id)
+        if self.history is not None:
+            self.history.forget(avatar_id)
         # a player that never calibrated was never in a roster: its leaving costs the
         # spectators nothing (a join-and-leave loop made ~1,300 rosters a second)
         if avatar is None or avatar.info is not None:
@@ -432,6 +455,10 @@ class Room:
             deliveries = {a: (shared, i) for i, a in enumerate(shared.avatar_ids)}
             for s in behind:
                 s.outbox.offer(deliveries)
+        if self.history is not None:  # after the sends: the truth for display errors
+            ids, t_capture, roots, rotations = shared.solved_rows()
+            if ids:
+                self.history.add(ids, t_capture, roots, rotations)
 
     def codings(self, avatar_ids: list[int]) -> dict[int, PoseCoding | None]:
         """How these avatars' rotations are packed: their rosters' codings (a replay's

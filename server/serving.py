@@ -70,10 +70,12 @@ async def run_server(host: str, port: int, session: Session | None = None,
         poller = (loop.create_task(session.busy.run(stop))
                   if session.busy is not None else None)
         watchdog = loop.create_task(session.watch())
+        measuring = loop.create_task(session.measure())
         try:
             await stop.wait()
         finally:
             watchdog.cancel()
+            measuring.cancel()
             if poller is not None:
                 poller.cancel()
                 with contextlib.suppress(asyncio.CancelledError):

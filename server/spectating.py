@@ -31,6 +31,7 @@ from posecast.protocol import (
 )
 from posecast.protocol.arrivals import arrival_time
 from posecast.server.clock import now
+from posecast.server.display_error import DisplayErrorMeter
 from posecast.server.limits import (
     Budget,
     ServerLimits,
@@ -52,6 +53,7 @@ class SpectatingConnections:
 
     limits: ServerLimits
     metrics: Metrics
+    display: DisplayErrorMeter
     _ids: Iterator[int]
 
     async def _reject(self, ws: ServerConnection, err: ProtocolError) -> None:
@@ -154,7 +156,7 @@ class SpectatingConnections:
                     if isinstance(msg, ViewerReport):
                         if not reports.take(t_received):
                             raise self._limited("reports", self.limits.reports_per_s)
-                        self._viewer_report(msg, t_received)
+                        self._viewer_report(msg, t_received, room)
                         continue
                     await self._common(ws, msg, t_received, "spectator")
                 except ProtocolError as err:
@@ -175,13 +177,15 @@ class SpectatingConnections:
                 task.exception()  # retrieved: a send to a closed connection fails
             self.metrics.frames_dropped += outbox.dropped
 
-    def _viewer_report(self, report: ViewerReport, t_received: float) -> None:
-        """A spectator's presentation times into the metrics, once every time is within
-        ``capture_skew_s`` of the report's arrival: a viewer hours off, or one that
-        reports the future, would spoil the histograms every scrape reads."""
+    def _viewer_report(self, report: ViewerReport, t_received: float, room: Room) -> None:
+        """A spectator's presentation times into the metrics, and its shown poses to
+        the display error's samples, once every time is within ``capture_skew_s`` of
+        the report's arrival: a viewer hours off, or one that reports the future, would
+        spoil the histograms every scrape reads."""
         skew = self.limits.capture_skew_s
-        for name in ("t_capture", "t_received", "t_presented"):
-            times: np.ndarray = getattr(report, name)
+        shown = np.array([p.t_presented for p in report.shown])
+        for name in ("t_capture", "t_received", "t_presented", "shown.t_presented"):
+            times: np.ndarray = shown if name.startswith("shown") else getattr(report, name)
             if not times.size:
                 continue
             off = np.flatnonzero(~(np.abs(times - t_received) <= skew))
@@ -192,6 +196,8 @@ class SpectatingConnections:
                     f"{float(times[row]) - t_received:+.3g} s off the server clock at its "
                     f"arrival; more than capture_skew_s ({skew:g} s): is the clock synced?"))
         self.metrics.viewer_reports += 1
+        if report.shown:
+            self.display.offer(room, report, t_received)
         if report.size:
             self.metrics.viewer_latency.report(report.t_capture, report.t_received,
                                                report.t_presented)

@@ -53,6 +53,12 @@ class Rig:
         return self.roles[name][0]
 
     @property
+    def body(self) -> list[int]:
+        """The joints of the body's named parts (every role's joints): where a display
+        error is measured, fingers and the rest left out."""
+        return sorted({j for js in self.roles.values() for j in js})
+
+    @property
     def num_dof(self) -> int:
         return int(np.count_nonzero(self.hi - self.lo))
 

@@ -113,6 +113,9 @@ class DemoResult:
     # spectator 1's clock estimate minus the server's clock (one machine: the true offset
     # is 0), its median over the batches: what its prediction reckons with
     clock_error_ms: float | None = None
+    # the server's own display error (its /metrics) of what viewers reported showing,
+    # per "viewer/mode": p50/p95 read off its histogram's buckets, mm
+    metrics_display_error: dict[str, dict[str, float]] = field(default_factory=dict)
 
     def as_json(self) -> dict[str, object]:
         return {"players": self.players, "spectators": self.spectators,
@@ -134,7 +137,8 @@ class DemoResult:
                 "dropouts": self.dropouts, "device_lost_frames": self.device_lost_frames,
                 "device_losses": self.device_losses,
                 "browser": self.browser.as_json() if self.browser is not None else None,
-                "clock_error_ms": self.clock_error_ms}
+                "clock_error_ms": self.clock_error_ms,
+                "metrics_display_error_mm": self.metrics_display_error}
 
     def format_display_error(self) -> str:
         """What a spectator sees, per viewer mode: p50/p95 of the display error."""
@@ -150,6 +154,9 @@ class DemoResult:
                   for e in (self.browser.clock_error_ms, self.clock_error_ms)]
             lines.append(f"  clock estimates against the server's: the page's {ms[0]}, "
                          f"spectator 1's {ms[1]}")
+        for key, e in self.metrics_display_error.items():
+            lines.append(f"  /metrics, {key:<12} p50 {e['p50']:7.1f}  p95 {e['p95']:7.1f}  "
+                         f"(the server's, of {e['n']:g} poses the viewer reported showing)")
         d = self.display_error.delay_json()
         lines.append(f"  interpolation's playout delay: p50 {d['p50']:.1f} ms, "
                      f"p95 {d['p95']:.1f} ms (grows with the jitter it measures)")
@@ -597,6 +604,7 @@ def run_demo(players: int = 4, spectators: int = 2, seconds: float = 10.0,
         viewer=render is not None, network=str(network) if network else "loopback",
         display_error=display_error, browser=page,
         clock_error_ms=clock_error_ms(clients.arrivals),
+        metrics_display_error=metrics.get("display_error_mm", {}),  # type: ignore[arg-type]
         proxy=proxy.stats if proxy is not None else {}, servers=servers,
         frames_relayed=total("frames_relayed"),
         devices=[devices[i % len(devices)] for i in range(players)],

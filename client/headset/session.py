@@ -119,7 +119,7 @@ class Headset:
         self.stop = stop
         self.link = PlayerLink(player, feed)
         self.lock = threading.Lock()
-        self.reports = Reports()
+        self.reports = Reports("headset")
         self.spectator: HeadsetSpectator | None = None
         if spectate:
             self.spectator = HeadsetSpectator(

@@ -204,7 +204,7 @@ def measure_display_error(captures: list[CaptureLog], arrivals: list[Arrival], r
     presented = replay_playout(arrivals, instants, ids, modes, instant_offsets,
                                pushed_before)
     truth_solver = AvatarSolver(rig, solver)
-    skeleton, body = rig.skeleton, sorted({j for js in rig.roles.values() for j in js})
+    skeleton, body = rig.skeleton, rig.body
     errors: dict[str, list[Array]] = {m.value: [] for m in modes}
     delays = []
     for avatar_id in ids:

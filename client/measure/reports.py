@@ -8,6 +8,10 @@ was presented (local clock, converted to the server clock as the report is taken
 with the same offset: presented never precedes received). A busier room is sampled (a
 reservoir of MAX_REPORT_ROWS rows a report), so that every frame is equally likely to be
 in the server's histograms however many avatars there are.
+
+A report also carries a few avatars as they were presented (ShownPose, a reservoir of
+MAX_REPORT_POSES over every avatar of every frame), from which the server measures the
+display error in its /metrics (``server.display_error``).
 """
 
 from __future__ import annotations
@@ -16,8 +20,8 @@ import threading
 
 import numpy as np
 
-from posecast.protocol import ClockEstimator, ViewerReport
-from posecast.protocol.messages import MAX_REPORT_ROWS
+from posecast.protocol import ClockEstimator, ShownPose, ViewerReport
+from posecast.protocol.messages import MAX_REPORT_POSES, MAX_REPORT_ROWS
 
 REPORT_INTERVAL_S = 0.5  # as the browser page's: the server takes 4 a second
 
@@ -26,14 +30,36 @@ class Reports:
     """A viewer's figures for the server, added by its frame loop and taken by whatever
     sends them (a headset's frame loop runs on a thread of its own: hence the lock)."""
 
-    def __init__(self, seed: int = 0) -> None:
+    def __init__(self, viewer: str, seed: int = 0) -> None:
         self._lock = threading.Lock()
         self._pose_to_submit: list[float] = []
         self._rows: list[tuple[float, float, float]] = []  # t_capture (server), local x2
         self._seen = 0
+        # (avatar id, t_presented local, root, rotations) of avatars as presented
+        self._shown: list[tuple[int, float, np.ndarray, np.ndarray]] = []
+        self._shown_seen = 0
         self._random = np.random.default_rng(seed)
+        self.viewer = viewer  # ViewerReport.viewer: desktop, headset
+        self.mode: str | None = None  # the playout mode the shown poses come from
         self.sent = 0
         self.enabled = True
+
+    def show(self, mode: str, avatar_ids: list[int], roots: list[np.ndarray],
+             rotations: list[np.ndarray], t_presented: float) -> None:
+        """The avatars a frame presented at ``t_presented`` (local), in playout
+        ``mode``: each equally likely to be one of the report's shown poses. The
+        arrays are kept as they are: a viewer's sampled poses are never written to."""
+        with self._lock:
+            if mode != self.mode:  # poses of the old mode are not this report's
+                self.mode, self._shown, self._shown_seen = mode, [], 0
+            for avatar_id, root, rot in zip(avatar_ids, roots, rotations, strict=True):
+                self._shown_seen += 1
+                if len(self._shown) < MAX_REPORT_POSES:
+                    self._shown.append((avatar_id, t_presented, root, rot))
+                    continue
+                k = int(self._random.integers(self._shown_seen))
+                if k < MAX_REPORT_POSES:
+                    self._shown[k] = (avatar_id, t_presented, root, rot)
 
     def add(self, pose_to_submit: float | None, first: list[tuple[float, float]],
             t_presented: float) -> None:
@@ -65,13 +91,18 @@ class Reports:
         """The report of what was added since the last, on the server clock; None when
         there is nothing (or the clock is not synced: rows then wait)."""
         with self._lock:
-            if not (self._pose_to_submit or self._rows) or not clock.synced:
+            if not (self._pose_to_submit or self._rows or self._shown) or not clock.synced:
                 return None
-            durations, rows = self._pose_to_submit, self._rows
+            durations, rows, shown = self._pose_to_submit, self._rows, self._shown
             self._pose_to_submit, self._rows, self._seen = [], [], 0
+            self._shown, self._shown_seen = [], 0
         offset = clock.offset  # one offset for both columns: presented never precedes
         table = np.array(rows, dtype=np.float64).reshape(-1, 3)
         return ViewerReport(t_capture=table[:, 0], t_received=table[:, 1] + offset,
                             t_presented=table[:, 2] + offset,
                             pose_to_submit=np.array(durations, dtype=np.float64)
-                            if durations else None)
+                            if durations else None,
+                            shown=tuple(ShownPose(avatar_id=a, t_presented=t + offset,
+                                                  root=root, rotations=rot)
+                                        for a, t, root, rot in shown),
+                            viewer=self.viewer, mode=self.mode)  # type: ignore[arg-type]

@@ -104,7 +104,7 @@ class Viewer:
         self._counted: dict[int, int] = {}  # avatar id -> seq whose arrival was recorded
         # what it presented, for the server's /metrics (as the browser page and a
         # headset report theirs): sent from the frame loop, twice a second
-        self.reports = Reports()
+        self.reports = Reports("desktop")
         self._reported_at = -math.inf
 
     def warm_up(self) -> None:
@@ -185,6 +185,10 @@ class Viewer:
         if receive:
             stats.latency.add_values("receive_to_render", receive)
         self.reports.add(None, first, t_present)
+        sampled = drawn.scene.sampled
+        self.reports.show(self.scene.mode.value, list(drawn.scene.ids),
+                          [s.root for s in sampled], [s.rotations for s in sampled],
+                          t_present)
         self._report(t_present)
 
     def _report(self, t_local: float) -> None:

@@ -49,6 +49,10 @@ def f8(*values: float) -> bytes:
     return np.asarray(values, dtype="<f8").tobytes()
 
 
+SHOWN = {"avatar_id": 1, "t_presented": 1.0, "root": f8(0.0, 1.0, 0.0),
+         "rotations": np.array([0, 0, 0, 32767], "<i2").tobytes()}
+
+
 # --------------------------------------------------------------------------- the message
 def test_a_report_round_trips_within_a_client_message() -> None:
     small = report([1.0, 2.0, 3.0])
@@ -90,6 +94,18 @@ def test_a_report_round_trips_within_a_client_message() -> None:
     (wire(t_capture=f8(1.0), t_received=f8(1.0)), "t_presented: Field required"),
     (wire(t_capture=f8(1.0), t_received=f8(1.0), t_presented=f8(1.0), extra=1),
      "extra"),
+    # shown poses (the server's display error)
+    (wire(t_capture=b"", t_received=b"", t_presented=b"", shown=[SHOWN] * 5),
+     "at most 4 items"),
+    (wire(t_capture=b"", t_received=b"", t_presented=b"",
+          shown=[{**SHOWN, "rotations": b"\x00" * 7}]), "7 bytes is not a whole number"),
+    (wire(t_capture=b"", t_received=b"", t_presented=b"",
+          shown=[{**SHOWN, "rotations": np.array([0, 0, 0, 1000], "<i2").tobytes()}]),
+     "unit quaternion"),
+    (wire(t_capture=b"", t_received=b"", t_presented=b"",
+          shown=[{**SHOWN, "root": f8(0.0, 1e9, 0.0)}]), "shown[0].root: row 0 position"),
+    (wire(t_capture=b"", t_received=b"", t_presented=b"", shown=[SHOWN], mode="smooth"),
+     "mode"),
 ])
 def test_a_bad_report_is_one_clear_error(data: bytes, words: str) -> None:
     with pytest.raises(ProtocolError) as caught:

@@ -44,6 +44,7 @@ from posecast.protocol import (
     encode,
 )
 from posecast.protocol.codec import encode_tracker_frame
+from posecast.protocol.sizes import MAX_CLIENT_MESSAGE_BYTES
 from posecast.protocol.validation import pose_wire
 from posecast.server.app import Session
 from posecast.server.clock import now
@@ -424,10 +425,11 @@ def test_deep_nesting_and_long_keys(live: LiveServer) -> None:
         _unharmed(live)
 
 
-@pytest.mark.parametrize("size", [4097, 60_000, (1 << 20) + 1, 3 << 20])
+@pytest.mark.parametrize("size", [MAX_CLIENT_MESSAGE_BYTES + 1, 60_000, (1 << 20) + 1,
+                                  3 << 20])
 @pytest.mark.parametrize("first", [False, True])
 def test_oversize_messages(live: LiveServer, size: int, first: bool) -> None:
-    """Over the protocol's 4 KiB: an Error (too_large) or a close 1009; never a 1011."""
+    """Over the protocol's 8 KiB: an Error (too_large) or a close 1009; never a 1011."""
     data = msgpack.packb({"type": "ping", "t0": 1.0, "pad": b"x" * size})
     outcome = live.call(_probe(live.url, data, first))
     _check(outcome, data)

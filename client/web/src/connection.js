@@ -53,12 +53,13 @@ export class Connection {
     return false;
   }
 
-  /** A report of presented frames (three columns: server, local, local clocks). */
-  report(tCapture, tReceived, tPresented) {
+  /** A report of presented frames (three columns: server, local, local clocks) and of
+   * avatars as shown (their times local), in playout `mode`. */
+  report(tCapture, tReceived, tPresented, shown, mode) {
     if (!this.clock.synced) return false;
-    const offset = this.clock.offset; // one offset for both: presented stays after received
+    const offset = this.clock.offset; // one offset for all: presented stays after received
     return this.send(encodeViewerReport(tCapture, tReceived.map((t) => t + offset),
-      tPresented.map((t) => t + offset)));
+      tPresented.map((t) => t + offset), shown.map((s) => ({ ...s, t: s.t + offset })), mode));
   }
 
   receive(event) {

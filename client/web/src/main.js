@@ -219,6 +219,7 @@ class Spectator {
       this.reporter.add(f.tCapture, f.tArrival, t);
       if (clock.synced) this.presented.push(t + clock.offset - f.tCapture);
     }
+    for (const [id, s] of sampled) this.reporter.show(this.playout.mode, id, s.root, s.rotations, t);
     stats.framesPresented += fresh.length;
     stats.poseFrames = this.poseTimes.count;
     stats.avatars = this.scene.avatars.size;

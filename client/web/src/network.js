@@ -13,7 +13,7 @@ self.onmessage = ({ data }) => {
       (message) => self.postMessage(message));
     connection.open();
   } else if (data.type === "report" && connection !== null) {
-    connection.report(data.tCapture, data.tReceived, data.tPresented);
+    connection.report(data.tCapture, data.tReceived, data.tPresented, data.shown, data.mode);
   } else if (data.type === "leave" && connection !== null) {
     connection.leave();
   }

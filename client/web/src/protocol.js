@@ -18,6 +18,8 @@ export const MAX_JOINTS = 256;
 export const MAX_AVATARS = 1024;
 export const MAX_POSITION_M = 1000.0;
 export const MAX_REPORT_ROWS = 128; // protocol.messages.MAX_REPORT_ROWS
+export const MAX_REPORT_POSES = 4; // protocol.messages.MAX_REPORT_POSES
+const QUAT_LEVELS = 32767; // protocol.validation.POSE_QUAT_SCALE
 // 1-64 letters, digits, '-', '_' or '.', starting with a letter or digit
 const ROOM_NAME = /^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$/;
 export const ROOM_NAME_RULE = "room names are 1-64 letters, digits, '-', '_' or '.', " +
@@ -61,14 +63,33 @@ export function encodeLeave(reason = "") {
   return pack({ type: "leave", reason });
 }
 
-/** A ViewerReport: three equal columns of server-clock seconds, 1..MAX_REPORT_ROWS. */
-export function encodeViewerReport(tCapture, tReceived, tPresented) {
+/** A ViewerReport: three equal columns of server-clock seconds (0..MAX_REPORT_ROWS),
+ * and up to MAX_REPORT_POSES avatars as shown ({ id, t (server clock), root,
+ * rotations }) in playout `mode`, for the server's display error; one of them at least. */
+export function encodeViewerReport(tCapture, tReceived, tPresented, shown = [], mode = null) {
   const n = tCapture.length;
-  if (n < 1 || n > MAX_REPORT_ROWS || tReceived.length !== n || tPresented.length !== n) {
-    throw new RangeError(`a report holds 1-${MAX_REPORT_ROWS} rows of three equal columns`);
+  if (n > MAX_REPORT_ROWS || tReceived.length !== n || tPresented.length !== n ||
+      shown.length > MAX_REPORT_POSES || (n < 1 && !shown.length)) {
+    throw new RangeError(`a report holds 0-${MAX_REPORT_ROWS} rows of three equal columns ` +
+      `and 0-${MAX_REPORT_POSES} shown poses, one of them at least`);
   }
-  return pack({ type: "viewer_report", t_capture: packF64(tCapture),
-    t_received: packF64(tReceived), t_presented: packF64(tPresented) });
+  const report = { type: "viewer_report", t_capture: packF64(tCapture),
+    t_received: packF64(tReceived), t_presented: packF64(tPresented), viewer: "browser" };
+  if (shown.length) {
+    report.shown = shown.map((s) => ({ avatar_id: s.id, t_presented: s.t,
+      root: packF64(s.root), rotations: packLevels(s.rotations) }));
+    report.mode = mode;
+  }
+  return pack(report);
+}
+
+// a quaternion's components as int16 levels round(q 32767), as the server reads them
+function packLevels(values) {
+  const levels = new Int16Array(values.length);
+  values.forEach((v, i) => {
+    levels[i] = Math.round(Math.min(Math.max(v, -1), 1) * QUAT_LEVELS);
+  });
+  return new Uint8Array(levels.buffer); // little-endian on every browser's hardware
 }
 
 function packF64(values) {

@@ -8,9 +8,11 @@
 // so presented never comes before received. A report goes every REPORT_INTERVAL_S with
 // at most MAX_REPORT_ROWS
 // rows; a busier room is sampled (reservoir), so that every frame is equally likely to
-// be in the server's histograms however many avatars there are.
+// be in the server's histograms however many avatars there are. A report also carries a
+// few avatars as shown (a reservoir of MAX_REPORT_POSES over every avatar of every
+// frame), from which the server measures the display error in its /metrics.
 
-import { MAX_REPORT_ROWS } from "./protocol.js";
+import { MAX_REPORT_POSES, MAX_REPORT_ROWS } from "./protocol.js";
 
 export const REPORT_INTERVAL_S = 0.5; // 2 a second; the server takes 4 (reports_per_s)
 const HUD_WINDOW = 2000; // samples per stage the HUD's percentiles look back over
@@ -22,6 +24,26 @@ export class Reporter {
     this.lastSent = -Infinity;
     this.enabled = true; // false once a server says it does not know viewer_report
     this.sent = 0;
+    this.shown = []; // { id, t (local), root, rotations } of avatars as presented
+    this.shownSeen = 0;
+    this.mode = null; // the playout mode they were shown in
+  }
+
+  /** An avatar presented at `t` (local) in playout `mode`: each equally likely to be one
+   * of the report's shown poses (copied when kept: a held frame's arrays are shared). */
+  show(mode, id, root, rotations, t) {
+    if (mode !== this.mode) { // poses of the old mode are not this report's
+      this.mode = mode;
+      this.shown = [];
+      this.shownSeen = 0;
+    }
+    this.shownSeen += 1;
+    const k = this.shown.length < MAX_REPORT_POSES ? this.shown.length
+      : Math.floor(Math.random() * this.shownSeen);
+    if (k < MAX_REPORT_POSES) {
+      this.shown[k] = { id, t, root: Float64Array.from(root),
+        rotations: Float64Array.from(rotations) };
+    }
   }
 
   add(tCapture, tReceived, tPresented) {
@@ -36,16 +58,20 @@ export class Reporter {
 
   /** The rows of a report when one is due (columns), else null. */
   take(tLocal) {
-    if (!this.enabled || !this.rows.length || tLocal - this.lastSent < REPORT_INTERVAL_S) {
+    if (!this.enabled || !(this.rows.length || this.shown.length) ||
+        tLocal - this.lastSent < REPORT_INTERVAL_S) {
       return null;
     }
     const rows = this.rows;
+    const shown = this.shown;
     this.rows = [];
     this.seen = 0;
+    this.shown = [];
+    this.shownSeen = 0;
     this.lastSent = tLocal;
     this.sent += 1;
     return { tCapture: rows.map((r) => r[0]), tReceived: rows.map((r) => r[1]),
-      tPresented: rows.map((r) => r[2]) };
+      tPresented: rows.map((r) => r[2]), shown, mode: this.mode };
   }
 }
 

@@ -141,7 +141,13 @@ test("client messages are encoded for Python to decode", { skip }, () => {
     ping: Buffer.from(encodePing(12.375)).toString("hex"),
     leave: Buffer.from(encodeLeave("page closed")).toString("hex"),
     report: Buffer.from(encodeViewerReport([1.0, 2.5], [1.25, 2.75], [1.5, 3.0])).toString("hex"),
+    // a shown pose alone (no rows): an avatar's root and two joints, as the page sends them
+    shown: Buffer.from(encodeViewerReport([], [], [], [{ id: 7, t: 3.5,
+      root: Float64Array.of(0.1, 0.9, -0.2),
+      rotations: Float64Array.of(0, 0, 0, 1, 0.5, -0.5, 0.5, 0.5) }], "predict")).toString("hex"),
   };
   assert.throws(() => encodeViewerReport([], [], []), RangeError);
+  const pose = { id: 1, t: 1.5, root: [0, 0, 0], rotations: [0, 0, 0, 1] };
+  assert.throws(() => encodeViewerReport([], [], [], Array(5).fill(pose), "predict"), RangeError);
   writeFileSync(process.env.POSECAST_JS_OUT, JSON.stringify(out));
 });

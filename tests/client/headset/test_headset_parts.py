@@ -135,7 +135,7 @@ def test_the_local_body_is_the_servers_body() -> None:
 
 
 def test_reports_carry_the_frames_and_wait_for_a_synced_clock() -> None:
-    reports = Reports()
+    reports = Reports("headset")
     clock = ClockEstimator()
     reports.add(0.012, [(100.0, 5.0)], 5.004)
     assert reports.take(clock) is None  # not synced: kept

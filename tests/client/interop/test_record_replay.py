@@ -105,14 +105,14 @@ def test_large_messages_are_split_to_what_a_client_may_send(tmp_path: Path) -> N
                                         if isinstance(m, AvatarRoster) for i in m.avatars))
     batch = next(m for m in rec.messages if isinstance(m, AvatarBatch) and m.size > 1)
     wide = AvatarBatch.from_frames([batch.frame(i % batch.size).model_copy(
-        update={"avatar_id": 100 + i}) for i in range(16)], t_sent=1.0)
+        update={"avatar_id": 100 + i}) for i in range(40)], t_sent=1.0)
     assert len(encode(roster)) > MAX_CLIENT_MESSAGE_BYTES
     assert len(encode(wide)) > MAX_CLIENT_MESSAGE_BYTES
     parts = list(split(roster, 0))
     assert [p.avatars[0].display_name for p in parts] == [
         i.display_name for i in roster.avatars]
     halves = list(split(wide, 7))
-    assert sum(p.size for p in halves) == 16 and len(halves) > 1
+    assert sum(p.size for p in halves) == 40 and len(halves) > 1
     for part in parts + halves:
         assert len(encode(part)) <= MAX_CLIENT_MESSAGE_BYTES
     assert all(p.seqs.tolist() == [7] * p.size for p in halves)

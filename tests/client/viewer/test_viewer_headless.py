@@ -104,6 +104,12 @@ def test_a_viewer_reports_what_it_presented_to_the_servers_metrics(egl: None,
     # each avatar-frame once, at its first presentation; no more than were received
     assert stats.spectator is not None
     assert 1 <= presented <= stats.spectator.frames_received
+    # and avatars as it showed them, for the server's display error (measured a tick
+    # later, once the room keeps a history: some may still wait at the stop)
+    offered = sum(m.display_samples.values()) + len(fresh.display.reservoir.held)
+    assert offered >= 1
+    assert {v for v, _ in m.display_error.counts} <= {"desktop"}
+    assert {s.viewer for _, s in fresh.display.reservoir.held} <= {"desktop"}
 
 
 def test_render_a_running_plain_spectator(egl: None, session: Session,

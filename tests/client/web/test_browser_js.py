@@ -201,7 +201,15 @@ def test_the_pages_javascript_speaks_the_python_protocol(node: str, tmp_path: Pa
     assert decode_client(sent["ping"]) == Ping(t0=12.375)
     assert decode_client(sent["leave"]) == Leave(reason="page closed")
     assert decode_client(sent["report"]) == ViewerReport(
-        t_capture=[1.0, 2.5], t_received=[1.25, 2.75], t_presented=[1.5, 3.0])
+        t_capture=[1.0, 2.5], t_received=[1.25, 2.75], t_presented=[1.5, 3.0],
+        viewer="browser")
+    shown = decode_client(sent["shown"])
+    assert isinstance(shown, ViewerReport) and shown.size == 0
+    assert (shown.viewer, shown.mode, len(shown.shown)) == ("browser", "predict", 1)
+    pose = shown.shown[0]
+    assert (pose.avatar_id, pose.t_presented, pose.root.tolist()) == (7, 3.5, [0.1, 0.9, -0.2])
+    np.testing.assert_allclose(pose.rotations, [[0, 0, 0, 1], [0.5, -0.5, 0.5, 0.5]],
+                               atol=1 / 32767)
 
 
 def coded_case(rng: np.random.Generator) -> dict[str, object]:

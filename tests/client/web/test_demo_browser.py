@@ -44,6 +44,11 @@ def test_the_demo_measures_the_browser_pages_display_error_beside_the_desktops()
     # predicting, the page is far from the newest frame's stutter over this link
     for e in (errors["browser"], own):
         assert e["p50"] < errors["zero-buffer"]["p50"] / 2
+    # the server's own figure (/metrics) of the poses the page reported showing, against
+    # the poses it solved: the page's own frames' figure, to its buckets' resolution
+    served = doc["metrics_display_error_mm"]["browser/predict"]
+    assert served["n"] >= 10
+    assert own["p50"] / 2 <= served["p50"] <= 2 * own["p50"]
 
 
 def test_a_bad_browser_mode_is_one_line() -> None:
