@@ -156,7 +156,8 @@ class DemoResult:
                          f"spectator 1's {ms[1]}")
         for key, e in self.metrics_display_error.items():
             lines.append(f"  /metrics, {key:<12} p50 {e['p50']:7.1f}  p95 {e['p95']:7.1f}  "
-                         f"(the server's, of {e['n']:g} poses the viewer reported showing)")
+                         f"(the server's, of {e['n']:g} poses the viewer reported showing; "
+                         "with the clip's seams, which the rows above leave out)")
         d = self.display_error.delay_json()
         lines.append(f"  interpolation's playout delay: p50 {d['p50']:.1f} ms, "
                      f"p95 {d['p95']:.1f} ms (grows with the jitter it measures)")
