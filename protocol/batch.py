@@ -40,6 +40,7 @@ from posecast.protocol.validation import (
     check_positions,
     int_column,
     is_wire,
+    one_position,
     readonly,
     time_column,
     unit_quaternions,
@@ -97,11 +98,7 @@ class AvatarFrame(Model):
     @field_validator("root", mode="plain")
     @classmethod
     def _root(cls, value: Any) -> Array:
-        rows = as_rows(value, 3, wire=False)
-        if rows.shape[0] != 1:
-            raise ValueError(f"expected one position (3 numbers), got {rows.shape[0]} rows")
-        check_positions(rows)
-        return readonly(rows[0])
+        return one_position(value, wire=False)
 
     @field_validator("rotations", mode="plain")
     @classmethod

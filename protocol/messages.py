@@ -61,6 +61,7 @@ from posecast.protocol.validation import (
     checked_wire_poses,
     device_poses,
     is_wire,
+    one_position,
     pose_wire,
     readonly,
     time_column,
@@ -400,11 +401,7 @@ class ShownPose(Model):
     @field_validator("root", mode="plain")
     @classmethod
     def _root(cls, value: Any, info: ValidationInfo) -> Array:
-        rows = as_rows(value, 3, is_wire(info))
-        if rows.shape[0] != 1:
-            raise ValueError(f"expected one position, got {rows.shape[0]}")
-        check_positions(rows)
-        return readonly(rows[0])
+        return one_position(value, is_wire(info))
 
     @field_validator("rotations", mode="plain")
     @classmethod

@@ -213,6 +213,15 @@ def check_positions(positions: NDArray[np.float64], labels: Sequence[str] | None
                      f"{MAX_POSITION_M:g} m")
 
 
+def one_position(value: Any, wire: bool) -> NDArray[np.float64]:
+    """A root position: one row of three numbers within MAX_POSITION_M."""
+    rows = as_rows(value, 3, wire)
+    if rows.shape[0] != 1:
+        raise ValueError(f"expected one position (3 numbers), got {rows.shape[0]} rows")
+    check_positions(rows)
+    return readonly(rows[0])
+
+
 def unit_quaternions(q: NDArray[np.float64], labels: Sequence[str] | None = None,
                      ) -> NDArray[np.float64]:
     """(n, 4) x y z w within QUAT_NORM_TOLERANCE of unit norm -> normalised."""
