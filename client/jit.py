@@ -109,7 +109,9 @@ def kernel_steps() -> list[Step]:
         return run
 
     def server() -> None:
-        # the server's own solve: staged arrays, bone targets and the helper thread's loop
+        # the server's own solve: staged arrays, bone targets and the helper thread's loop;
+        # the display error's pose history (a fixed signature: importing compiles it)
+        import posecast.server.display_error  # noqa: F401
         from posecast.server.avatars import AvatarSolver
         from posecast.solver.readers.gltf import load_makehuman
         from posecast.solver.rig import build_rig

@@ -272,8 +272,8 @@ def _bad_messages(rec: ViveRecording) -> list[tuple[str, bytes, str]]:
     nan = poses(rec, 3).copy()
     nan[2, 1] = math.nan
     nan_frame = {**frame, "poses": pose_wire(nan)}
-    # over the protocol's 4 KiB, within websockets' bound (which closes with 1009)
-    huge = {**frame, "padding": b"x" * 4000}
+    # over the protocol's 8 KiB, within websockets' bound (which closes with 1009)
+    huge = {**frame, "padding": b"x" * 8000}
     old = {"type": "hello", "protocol_version": 99, "role": "player", "room": "x",
            "display_name": "old"}
     return [("not_msgpack", b"\xc1 not msgpack", "msgpack"),
