@@ -130,7 +130,7 @@ class Headset:
                 self.spectator.reconnect = Reconnect(say=log.info)
         scene = SpectatorScene(self.spectator) if self.spectator is not None else None
         self.view = HeadsetView(display, self.link, scene, self.lock, body,
-                                mirror_distance, frames, on_frame=self.reports.add)
+                                mirror_distance, frames, on_frame=self.reports.headset_frame)
         self._thread_stop = threading.Event()
         self._thread = threading.Thread(target=self.view.run, name="posecast-headset",
                                         args=(self._thread_stop, self._ended), daemon=True)

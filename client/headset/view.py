@@ -100,20 +100,30 @@ class HeadsetStats:
                 "latency_ms": self.latency.summary(), "compositor_errors": self.errors}
 
 
+@dataclass
+class HeadsetFrameDone:
+    """What one presented headset frame tells the session's reports."""
+
+    pose_to_submit: float  # seconds from its poses to its submission
+    first: list[tuple[float, float]]  # (t_capture server, t_received local), first drawn
+    shown: list[tuple[int, np.ndarray, np.ndarray]]  # the others: (id, root, rotations)
+    mode: str | None  # the playout mode they were shown in (None: alone)
+    t_presented: float  # local clock
+
+
 class HeadsetView:
     """Draws the room into ``display``'s eyes until stopped; see the module docstring.
 
     ``others``: the spectator connection's scene (None: alone), read under ``lock``.
-    ``on_frame``: called on this thread after each frame with (pose_to_submit seconds,
-    the others' [(avatar id, t_capture server clock, t_received local)] drawn for the
-    first time, t_presented local), for the session's reports.
+    ``on_frame``: called on this thread after each frame with a ``HeadsetFrameDone``
+    (pose_to_submit, the others drawn for the first time, the others as shown, when),
+    for the session's reports.
     """
 
     def __init__(self, display: Display, link: PlayerLink, others: SpectatorScene | None,
                  lock: threading.Lock, body: LocalBody | None = None,
                  mirror_distance: float | None = 2.0, frames: int | None = None,
-                 on_frame: Callable[[float, list[tuple[float, float]], float], None]
-                 | None = None) -> None:
+                 on_frame: Callable[[HeadsetFrameDone], None] | None = None) -> None:
         self.display = display
         self.link = link
         self.others = others
@@ -133,6 +143,8 @@ class HeadsetView:
         self._head[1, 3] = STANDING_EYES_M
         self._hud = ""
         self._hud_at = -math.inf
+        # the others of the frame drawn last, as shown: (id, root, rotations)
+        self._shown: list[tuple[int, np.ndarray, np.ndarray]] = []
         self._counted: dict[int, int] = {}  # avatar id -> seq whose presentation counted
         self.last: DrawnHeadset | None = None  # the frame drawn last (tests look at it)
 
@@ -226,6 +238,7 @@ class HeadsetView:
         names: list[str] = []
         colors: list[tuple[float, float, float]] = []
         drawn: list[tuple[int, float, float, int]] = []
+        self._shown = []
         others: list[int] = []
         if self.others is not None:
             with self.lock:
@@ -240,6 +253,7 @@ class HeadsetView:
                 names.append(label_text(d.avatar.info.display_name, gone))
                 colors.append(avatar_color(avatar_id))
                 drawn.append((avatar_id, s.t_capture, s.newest.t_arrival, s.newest.seq))
+                self._shown.append((avatar_id, s.root, s.rotations))
         posed = renderer.pose(draws)
         seen = renderer.without_heads(posed, list(range(own)))
         if frame.head is not None:
@@ -296,4 +310,6 @@ class HeadsetView:
         if errors:
             stats.errors = dict(errors)
         if self.on_frame is not None:
-            self.on_frame(pose_to_submit, first, t_presented)
+            mode = self.others.mode.value if self.others is not None else None
+            self.on_frame(HeadsetFrameDone(pose_to_submit, first, self._shown, mode,
+                                           t_presented))

@@ -17,11 +17,15 @@ display error in its /metrics (``server.display_error``).
 from __future__ import annotations
 
 import threading
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from posecast.protocol import ClockEstimator, ShownPose, ViewerReport
 from posecast.protocol.messages import MAX_REPORT_POSES, MAX_REPORT_ROWS
+
+if TYPE_CHECKING:
+    from posecast.client.headset.view import HeadsetFrameDone
 
 REPORT_INTERVAL_S = 0.5  # as the browser page's: the server takes 4 a second
 
@@ -43,6 +47,14 @@ class Reports:
         self.mode: str | None = None  # the playout mode the shown poses come from
         self.sent = 0
         self.enabled = True
+
+    def headset_frame(self, done: HeadsetFrameDone) -> None:
+        """A headset frame (``HeadsetView``'s ``on_frame``): its timings and the others
+        as shown."""
+        self.add(done.pose_to_submit, done.first, done.t_presented)
+        if done.shown and done.mode is not None:
+            ids, roots, rotations = zip(*done.shown, strict=True)
+            self.show(done.mode, list(ids), list(roots), list(rotations), done.t_presented)
 
     def show(self, mode: str, avatar_ids: list[int], roots: list[np.ndarray],
              rotations: list[np.ndarray], t_presented: float) -> None:

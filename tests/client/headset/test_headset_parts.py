@@ -28,10 +28,12 @@ from posecast.client.headset.stereo import (
     reflected,
     vive_setup,
 )
+from posecast.client.headset.view import HeadsetFrameDone
 from posecast.client.measure.reports import Reports
 from posecast.client.session.spectator import Spectator
 from posecast.client.sources.bvh_source import BvhSource
 from posecast.protocol import ClockEstimator
+from posecast.protocol.messages import MAX_REPORT_POSES
 from posecast.server.app import Session
 from posecast.server.avatars import AvatarSolver
 from posecast.solver import rotations as R
@@ -157,6 +159,37 @@ def test_reports_carry_the_frames_and_wait_for_a_synced_clock() -> None:
     assert not reports.stop_if_refused("rate_limited: too many pings")
     assert reports.stop_if_refused("unknown_type: type: unknown message type "
                                    "'viewer_report'") and not reports.enabled
+
+
+def test_reports_carry_a_few_avatars_as_shown_from_every_frame() -> None:
+    """Shown poses for the server's display error: a reservoir of MAX_REPORT_POSES over
+    every avatar of every frame, on the server clock, in the mode they were shown in."""
+    reports = Reports("headset", seed=4)
+    clock = ClockEstimator()
+    clock.add(1.0, 96.001, 96.001, 1.002)
+    rest = np.tile([0.0, 0.0, 0.0, 1.0], (53, 1))
+    kept = set()
+    for _ in range(20):
+        for frame in range(100):  # 3 others a frame
+            t = 10.0 + frame / 90
+            shown = [(a, np.array([float(a), 1.0, t]), rest) for a in (1, 2, 3)]
+            reports.headset_frame(HeadsetFrameDone(0.01, [], shown, "predict", t))
+        report = reports.take(clock)
+        assert report is not None and (report.viewer, report.mode) == ("headset", "predict")
+        assert len(report.shown) == MAX_REPORT_POSES
+        for p in report.shown:  # each the pose it was shown with, at its instant
+            assert p.root[0] == p.avatar_id
+            assert p.t_presented == pytest.approx(p.root[2] + clock.offset)
+        kept |= {(p.avatar_id, round(p.root[2], 6)) for p in report.shown}
+    # uniform over the 300 (avatar, frame) pairs: 80 draws land nearly all on new pairs,
+    # where keeping the first ones only would repeat the same 4
+    assert len(kept) >= 60
+    # a mode switched mid-report: the old mode's poses are not the report's
+    reports.show("predict", [1], [np.zeros(3)], [rest], 20.0)
+    reports.show("interpolate", [2], [np.zeros(3)], [rest], 20.1)
+    report = reports.take(clock)
+    assert report is not None and report.mode == "interpolate"
+    assert [p.avatar_id for p in report.shown] == [2]
 
 
 # --------------------------------------------------------------------------- the command
