@@ -109,9 +109,7 @@ def kernel_steps() -> list[Step]:
         return run
 
     def server() -> None:
-        # the server's own solve: staged arrays, bone targets and the helper thread's loop;
-        # the display error's pose history (a fixed signature: importing compiles it)
-        import posecast.server.display_error  # noqa: F401
+        # the server's own solve: staged arrays, bone targets and the helper thread's loop
         from posecast.server.avatars import AvatarSolver
         from posecast.solver.readers.gltf import load_makehuman
         from posecast.solver.rig import build_rig

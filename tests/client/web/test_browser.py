@@ -37,7 +37,9 @@ VIEW_W, VIEW_H = 800, 450
 AVATAR_FRAMES_APART = 45  # solved frames per avatar between the screenshots: 0.5 s of walk
 # a pixel of an avatar: saturated (the palette's colours; grid, background, text are grey)
 SATURATION = 60
-POSE_FRAMES = 20  # frames a mode's pose time is the median of
+# frames a mode's pose time is the median of: enough to see every mode pose and time all
+# 16 avatars (the figure is `bench page`'s, with 20 and more turns)
+POSE_FRAMES = 6
 HUE_TOLERANCE_DEG = 20.0
 
 
