@@ -192,3 +192,33 @@ def test_metrics_hold_the_display_error_of_what_viewers_showed() -> None:
     assert exact_p50 <= 2.0  # the downlink's rounding: ~0.07 deg a joint
     assert late_p50 >= 10.0  # 50 ms behind a walking body: centimetres
     assert scraped[("posecast_display_samples_total", (("outcome", "measured"),))] >= 20
+
+
+def test_a_relayed_batch_gives_the_history_the_rows_it_carries(rig: Rig) -> None:
+    """serve --redis: a process that relays a room keeps the owner's batches as they
+    arrived (decoded, to the wire's rounding) as its history."""
+    from posecast.protocol import decode
+    from posecast.server.room import RelayedBatch, SharedBatch
+
+    rng = np.random.default_rng(7)
+    J = rig.skeleton.num_joints
+    q = rng.normal(size=(2, J, 4))
+    q /= np.linalg.norm(q, axis=2, keepdims=True)
+    roots = np.array([[0.5, 1.0, 0.0], [-0.5, 1.0, 2.0]])
+    t0 = now() - 0.03  # times travel as float32 ages before t_sent (now): milliseconds
+    captured = [t0, t0 + 0.004]
+    solved = SharedBatch([4, 9], [1, 1], roots, q, captured, [t0 + 0.01, t0 + 0.012],
+                         t0 + 0.02)
+    batch = decode(solved.encoded())
+    assert isinstance(batch, AvatarBatch)
+    ids, t, r, rot = RelayedBatch(solved.encoded(), batch, {}).solved_rows()
+    assert ids == [4, 9] and rot.shape == (2, J, 4)
+    np.testing.assert_allclose(t, captured, atol=1e-6)
+    np.testing.assert_allclose(r, roots, atol=1e-6)
+    history = PoseHistory(J)
+    history.add(ids, t, r, rot)
+    history.add(ids, t + 1 / RATE, r, rot)
+    offsets = {4: rig.skeleton.offsets, 9: rig.skeleton.offsets}
+    errors, measured = display_errors(rig, history, offsets, [
+        ShownPose(avatar_id=9, t_presented=float(t[1]), root=roots[1], rotations=q[1])])
+    assert measured.all() and errors[0] < 0.002  # the downlink's rounding, millimetres
