@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from posecast.protocol import ShownPose, ViewerReport
+from posecast.server.latency import StageHistograms
 from posecast.solver.fk import forward_kinematics
 from posecast.solver.rig import Rig
 
@@ -49,6 +50,7 @@ SAMPLES_PER_TICK = 64
 BUCKET_BOUNDS_M: tuple[float, ...] = (0.002, 0.005, 0.01, 0.015, 0.02, 0.03, 0.04, 0.05,
                                       0.075, 0.1, 0.15, 0.2, 0.3, 0.5, 1.0)
 UNKNOWN = "unknown"  # a viewer that did not say what it is, or its mode
+_STAGE = ("display_error",)  # each label pair's histogram has this one row
 # a room nobody sent samples of for this long stops keeping its history
 HISTORY_IDLE_S = 10.0
 
@@ -143,36 +145,28 @@ class Sample:
 
 @dataclass
 class DisplayErrorHistograms:
-    """Counts per bucket (the last above every bound: +Inf) and sums, per (viewer,
-    mode) label pair, metres."""
+    """One histogram of display errors (``server.latency.StageHistograms``, metres) per
+    (viewer, mode) label pair, made when the pair is first seen."""
 
-    counts: dict[tuple[str, str], NDArray[np.int64]] = field(default_factory=dict)
-    sums: dict[tuple[str, str], float] = field(default_factory=dict)
-    _bounds: Array = field(default_factory=lambda: np.array(BUCKET_BOUNDS_M))
+    by_label: dict[tuple[str, str], StageHistograms] = field(default_factory=dict)
 
     def observe(self, viewer: str, mode: str, errors_m: Array) -> None:
-        key = (viewer, mode)
-        if key not in self.counts:
-            self.counts[key] = np.zeros(len(BUCKET_BOUNDS_M) + 1, dtype=np.int64)
-            self.sums[key] = 0.0
-        index = np.searchsorted(self._bounds, errors_m, side="left")  # first bound >= e
-        np.add.at(self.counts[key], index, 1)
-        self.sums[key] += float(errors_m.sum())
+        h = self.by_label.get((viewer, mode))
+        if h is None:
+            h = self.by_label[(viewer, mode)] = StageHistograms(_STAGE, BUCKET_BOUNDS_M)
+        h.observe(errors_m[None, :])
 
     def cumulative(self, key: tuple[str, str]) -> tuple[list[tuple[str, float]], float]:
-        totals = np.cumsum(self.counts[key]).tolist()
-        buckets = [(repr(b), float(c)) for b, c in zip(BUCKET_BOUNDS_M, totals, strict=False)]
-        buckets.append(("+Inf", float(totals[-1])))
-        return buckets, self.sums[key]
+        return self.by_label[key].cumulative(_STAGE[0])
 
     def count(self, viewer: str, mode: str) -> int:
-        c = self.counts.get((viewer, mode))
-        return 0 if c is None else int(c.sum())
+        h = self.by_label.get((viewer, mode))
+        return 0 if h is None else h.count(_STAGE[0])
 
     def quantile_mm(self, key: tuple[str, str], q: float) -> float:
         """The q-quantile as Prometheus' histogram_quantile reads it off the buckets:
         linear within the bucket it falls in (the last bound, in the +Inf bucket)."""
-        counts = self.counts[key]
+        counts = self.by_label[key].counts[0]
         cumulative = np.cumsum(counts)
         rank = q * cumulative[-1]
         b = int(np.searchsorted(cumulative, rank, side="left"))
@@ -187,7 +181,7 @@ class DisplayErrorHistograms:
         """Per "viewer/mode": p50 and p95 (mm, read off the buckets) and the count."""
         return {f"{v}/{m}": {"p50": round(self.quantile_mm((v, m), 0.5), 1),
                              "p95": round(self.quantile_mm((v, m), 0.95), 1),
-                             "n": self.count(v, m)} for v, m in sorted(self.counts)}
+                             "n": self.count(v, m)} for v, m in sorted(self.by_label)}
 
 
 class SampleReservoir:

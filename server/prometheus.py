@@ -144,7 +144,7 @@ class SessionCollector(Collector):
             "the avatars as solved at the same instant: per shown pose a viewer sampled "
             "(ViewerReport.shown), the mean distance over the body's joints, by the "
             "viewer's kind and playout mode.", labels=["viewer", "mode"])
-        for key in sorted(m.display_error.counts):
+        for key in sorted(m.display_error.by_label):
             buckets, total = m.display_error.cumulative(key)
             shown.add_metric(list(key), buckets, total)
         yield shown

@@ -108,7 +108,7 @@ def test_a_viewer_reports_what_it_presented_to_the_servers_metrics(egl: None,
     # later, once the room keeps a history: some may still wait at the stop)
     offered = sum(m.display_samples.values()) + len(fresh.display.reservoir.held)
     assert offered >= 1
-    assert {v for v, _ in m.display_error.counts} <= {"desktop"}
+    assert {v for v, _ in m.display_error.by_label} <= {"desktop"}
     assert {s.viewer for _, s in fresh.display.reservoir.held} <= {"desktop"}
 
 
