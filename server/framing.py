@@ -4,16 +4,13 @@ websockets' ``broadcast`` builds each connection's frame anew (its header, a cop
 payload, the protocol's bookkeeping) before writing it. A server's frame (RFC 6455 5.2)
 is the same for every connection: unmasked, no extension (``serve(compression=None)``),
 a binary opcode, the payload's length. So the room builds those bytes once per batch and
-writes them to each transport, which is all websockets itself would do for a connection
-that is open and not in the middle of a fragmented message.
+writes them to each transport (``Room.deliver_here``), which is all websockets itself
+would do for a connection that is open and not in the middle of a fragmented message.
 """
 
 from __future__ import annotations
 
 import struct
-
-from websockets.asyncio.server import ServerConnection
-from websockets.protocol import State
 
 _FIN_BINARY = 0x82
 
@@ -28,15 +25,3 @@ def binary_frame(payload: bytes) -> bytes:
     else:
         header = struct.pack("!BBQ", _FIN_BINARY, 127, n)
     return header + payload
-
-
-def write_frame(connection: ServerConnection, frame: bytes) -> bool:
-    """``frame`` (``binary_frame``'s) to the connection's transport now, if it may take
-    a message: open, and not sending a fragmented one; else False."""
-    if connection.protocol.state is not State.OPEN or connection.send_in_progress is not None:
-        return False
-    transport = connection.transport
-    if transport is None or transport.is_closing():
-        return False
-    transport.write(frame)
-    return True

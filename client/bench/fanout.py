@@ -12,13 +12,18 @@ reports the p99 capture-to-spectator of every process, which must stay within a 
 (25 ms, about two headset frames; ``--budget-ms``). ``--repeat`` runs it all again and
 reports medians.
 
-Each process runs on a core of its own, with its spectators: the load, at a lower
-priority, and its probes. The load is spectators that count the bytes they receive and
-nothing else (``ByteCounter``): a websockets client parses each frame in Python at about
-the cost of the server's send, and would measure the load generator instead of the
-server. A few real spectators per process (the probes, joined last: the last of its
-fan-out) decode everything and give the latency. On machines of their own, without the
-load beside them, the processes would hold more.
+Each server process runs on a core of its own. Where the machine has cores no server
+takes, the spectators (the load, at a lower priority, and the probes), the players and
+Redis run there, as on machines of their own, and the figure is the server's (the
+kernel's side of every loopback send still runs on the server's core). Where it has
+none (2 processes on 2 cores), each server's spectators share its core, so that every
+server pays for its own spectators alike.
+
+The load is spectators that count the bytes they receive and nothing else
+(``ByteCounter``): a websockets client parses each frame in Python at about the cost of
+the server's send, and would measure the load generator instead of the server. A few
+real spectators per process (the probes, joined last: the last of its fan-out) decode
+everything and give the latency.
 """
 
 from __future__ import annotations
@@ -208,15 +213,12 @@ async def _readable(pipe: Connection) -> None:
 @contextlib.contextmanager
 def _processes(target: Callable[..., None], service: Service, *args: Any
                ) -> Iterator[list[Connection]]:
-    """One process per server, running ``target(pipe, url, *args, core)`` on its server's
-    core: each server pays for its own spectators alike, for any number of processes
-    (the load of another server's spectators on a core made the two fan-outs cut into
-    each other: 2 processes held fewer spectators than 1)."""
-    cores = service.cores
+    """One process per server, running ``target(pipe, url, *args, core)`` on the core
+    of that server's spectators (``Service.client_cores``)."""
     ctx = mp.get_context("spawn")
     pipes, processes = [], []
     for k, url in enumerate(service.urls):
-        core = cores[k % len(cores)] if len(cores) >= 2 else None
+        core = service.client_cores[k]
         pipe, child = ctx.Pipe()
         process = ctx.Process(target=target, args=(child, url, *args[k], core),
                               daemon=True)
@@ -337,37 +339,53 @@ def _players_on(core: str, cores: tuple[int, ...], *args: Any) -> None:
 @dataclass
 class Service:
     urls: list[str]  # of the server processes, the owner first
-    # the cores the bench may use, read before this process pinned itself to the first:
-    # where each server's spectators go (their processes would inherit that pin)
-    cores: tuple[int, ...]
+    # the core each server's spectators (load and probes) run on, by server; None: any
+    client_cores: list[int | None]
+
+
+def placement(processes: int, cores: tuple[int, ...]) -> tuple[list[int | None], str]:
+    """Where each server's spectators run, and the ``pin_to_cores`` role of the players,
+    Redis and the bench itself. Server K has core K. With cores to spare, everything
+    else goes to them, away from the servers. Without, each server's spectators share
+    its core (the load of another server's spectators on a core made the two fan-outs
+    cut into each other: 2 processes held fewer spectators than 1), and the players
+    share the first server's core."""
+    if len(cores) < 2:
+        return [None] * processes, "core:0"
+    if len(cores) > processes:
+        spare = cores[processes:]
+        return [spare[k % len(spare)] for k in range(processes)], f"core:{processes}"
+    return [cores[k % len(cores)] for k in range(processes)], "core:0"
 
 
 @contextlib.contextmanager
 def _service(processes: int, players: int) -> Iterator[Service]:
-    """Redis, ``processes`` servers each pinned to a core of its own (as far as the
-    machine has them), and the players streaming into the first. The players and this
-    process share the first server's core, Redis the last one's: the far processes'
-    relay then does not wait for the owner's fan-out to get the core (the owner's
-    spectators do, as in any number of processes)."""
+    """``processes`` servers each pinned to a core of its own (as far as the machine has
+    them), Redis when there are several (one process serves alone, as ``serve`` without
+    ``--redis``), and the players streaming into the first (``placement``). Without cores
+    to spare Redis runs on the last server's core: the far processes' relay then does
+    not wait for the owner's fan-out to get the core."""
     cores = demo_cores()
-    first = "core:0"
+    client_cores, others = placement(processes, cores)
     with contextlib.ExitStack() as stack:
-        redis_url = stack.enter_context(RedisProcess(
-            setup=partial(pin_to_cores, f"core:{processes - 1}", cores))).url
+        redis_url = None
+        if processes > 1:
+            redis_role = others if others != "core:0" else f"core:{processes - 1}"
+            redis_url = stack.enter_context(RedisProcess(
+                setup=partial(pin_to_cores, redis_role, cores))).url
         servers = [stack.enter_context(EmbeddedServer(
             cores=cores, redis_url=redis_url, role=f"core:{k}", limits=LIMITS))
             for k in range(processes)]
         ctx = mp.get_context("spawn")
         pipe, child = ctx.Pipe()
         process = ctx.Process(target=_players_on, args=(
-            first, cores, child, servers[0].url, players, 24 * 3600.0,
+            others, cores, child, servers[0].url, players, 24 * 3600.0,
             builtin_motion_path(), (), None, None), daemon=True)
         process.start()
         pipe.send("go")
-        if len(cores) >= 2:
-            os.sched_setaffinity(0, {cores[0]})
+        pin_to_cores(others, cores)
         try:
-            yield Service([s.url for s in servers], cores)
+            yield Service([s.url for s in servers], client_cores)
         finally:
             if cores:
                 os.sched_setaffinity(0, cores)
@@ -424,7 +442,8 @@ def capacities(process_counts: list[int], players: int, start: int, seconds: flo
             for search in searches:
                 if search.done:
                     continue
-                first = Service(service.urls[:search.processes], service.cores)
+                first = Service(service.urls[:search.processes],
+                                service.client_cores[:search.processes])
                 step = _step(first, search.n, seconds, budget_ms)
                 search.record(step)
                 progress(step)
