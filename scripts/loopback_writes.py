@@ -7,10 +7,10 @@
 A writer pinned to the first core sends ``--bytes`` to each of ``--sockets`` connected
 sockets, 90 times a second (a room's batches), with nothing else to do: no framing, no
 checks, no event loop. Readers in another process, on another core where there is one,
-read them dry every 20 ms as the bench's load does. It prints the writer's CPU time per
-write (user and system: on loopback the kernel runs the receiving side of each send on
-the sender's core too) and the most spectators one core could then feed at 90 Hz with
-writes alone.
+read them dry every 20 ms with bench fanout's own load (``ByteCounter``). It prints the
+writer's CPU time per write (user and system: on loopback the kernel runs the receiving
+side of each send on the sender's core too) and the most spectators one core could then
+feed at 90 Hz with writes alone.
 """
 
 from __future__ import annotations
@@ -23,29 +23,22 @@ import socket
 import time
 from multiprocessing.synchronize import Event
 
-RATE_HZ = 90.0  # a room's batches a second
-READ_EVERY_S = 0.02  # as bench fanout's ByteCounter
-
-
-def _cores() -> list[int]:
-    return sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+from posecast.client.bench.demo import HEADSET_HZ as RATE_HZ  # a room's batches a second
+from posecast.client.bench.demo import demo_cores
+from posecast.client.bench.fanout import SWEEP_S, ByteCounter
 
 
 def _readers(port: int, count: int, core: int | None, stop: Event) -> None:
+    """``count`` sockets read dry every SWEEP_S, as bench fanout's load reads them."""
     if core is not None:
         os.sched_setaffinity(0, {core})
     sockets = [socket.create_connection(("127.0.0.1", port)) for _ in range(count)]
+    counter = ByteCounter()
     for s in sockets:
         s.setblocking(False)
-    buffer = bytearray(1 << 18)
-    while not stop.is_set():
-        for s in sockets:
-            try:
-                while s.recv_into(buffer) == len(buffer):
-                    pass
-            except BlockingIOError:
-                pass
-        time.sleep(READ_EVERY_S)
+        counter.add(s.fileno())
+    while not stop.wait(SWEEP_S):
+        counter.sweep()
 
 
 def main() -> int:
@@ -62,7 +55,7 @@ def main() -> int:
         parser.error(f"--sockets {args.sockets} needs {2 * args.sockets + 64} open files; "
                      f"this shell allows {hard} (ulimit -n)")
     resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
-    cores = _cores()
+    cores = demo_cores()
     if cores:
         os.sched_setaffinity(0, {cores[0]})
     listener = socket.socket()

@@ -343,49 +343,56 @@ class Service:
     client_cores: list[int | None]
 
 
-def placement(processes: int, cores: tuple[int, ...]) -> tuple[list[int | None], str]:
-    """Where each server's spectators run, and the ``pin_to_cores`` role of the players,
-    Redis and the bench itself. Server K has core K. With cores to spare, everything
-    else goes to them, away from the servers. Without, each server's spectators share
-    its core (the load of another server's spectators on a core made the two fan-outs
-    cut into each other: 2 processes held fewer spectators than 1), and the players
-    share the first server's core."""
-    if len(cores) < 2:
-        return [None] * processes, "core:0"
-    if len(cores) > processes:
+@dataclass
+class Placement:
+    """Where each process of the bench runs (``pin_to_cores`` roles and cores)."""
+
+    client_cores: list[int | None]  # each server's spectators (load and probes), by server
+    others: str  # the players and the bench itself
+    redis: str
+
+
+def placement(processes: int, cores: tuple[int, ...]) -> Placement:
+    """Server K has core K. With cores to spare, everything else goes to them, away from
+    the servers. Without, each server's spectators share its core (the load of another
+    server's spectators on a core made the two fan-outs cut into each other: 2
+    processes held fewer spectators than 1), the players share the first server's, and
+    Redis the last one's (the far processes' relay then does not wait for the owner's
+    fan-out to get the core)."""
+    if len(cores) > processes:  # (processes >= 1: so two cores at least)
         spare = cores[processes:]
-        return [spare[k % len(spare)] for k in range(processes)], f"core:{processes}"
-    return [cores[k % len(cores)] for k in range(processes)], "core:0"
+        return Placement([spare[k % len(spare)] for k in range(processes)],
+                         f"core:{processes}", f"core:{processes}")
+    clients: list[int | None] = ([cores[k % len(cores)] for k in range(processes)]
+                                 if len(cores) >= 2 else [None] * processes)
+    return Placement(clients, "core:0", f"core:{processes - 1}")
 
 
 @contextlib.contextmanager
 def _service(processes: int, players: int) -> Iterator[Service]:
     """``processes`` servers each pinned to a core of its own (as far as the machine has
     them), Redis when there are several (one process serves alone, as ``serve`` without
-    ``--redis``), and the players streaming into the first (``placement``). Without cores
-    to spare Redis runs on the last server's core: the far processes' relay then does
-    not wait for the owner's fan-out to get the core."""
+    ``--redis``), and the players streaming into the first (``placement``)."""
     cores = demo_cores()
-    client_cores, others = placement(processes, cores)
+    where = placement(processes, cores)
     with contextlib.ExitStack() as stack:
         redis_url = None
         if processes > 1:
-            redis_role = others if others != "core:0" else f"core:{processes - 1}"
             redis_url = stack.enter_context(RedisProcess(
-                setup=partial(pin_to_cores, redis_role, cores))).url
+                setup=partial(pin_to_cores, where.redis, cores))).url
         servers = [stack.enter_context(EmbeddedServer(
             cores=cores, redis_url=redis_url, role=f"core:{k}", limits=LIMITS))
             for k in range(processes)]
         ctx = mp.get_context("spawn")
         pipe, child = ctx.Pipe()
         process = ctx.Process(target=_players_on, args=(
-            others, cores, child, servers[0].url, players, 24 * 3600.0,
+            where.others, cores, child, servers[0].url, players, 24 * 3600.0,
             builtin_motion_path(), (), None, None), daemon=True)
         process.start()
         pipe.send("go")
-        pin_to_cores(others, cores)
+        pin_to_cores(where.others, cores)
         try:
-            yield Service([s.url for s in servers], client_cores)
+            yield Service([s.url for s in servers], where.client_cores)
         finally:
             if cores:
                 os.sched_setaffinity(0, cores)

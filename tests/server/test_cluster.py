@@ -466,11 +466,12 @@ def test_bench_fanout_search_needs_a_count_to_fail_twice_and_stops_within_3_perc
 def test_bench_fanout_gives_a_lone_server_a_core_of_its_own() -> None:
     """Where the machine has cores no server takes, the spectators, players and Redis
     go there; where it has none, each server's spectators share its core (every server
-    then pays for its own alike), and a one-core machine pins nothing."""
-    from posecast.client.bench.fanout import placement
+    then pays for its own alike) and Redis the last server's; a one-core machine pins
+    nothing."""
+    from posecast.client.bench.fanout import Placement, placement
 
-    assert placement(1, (0, 1)) == ([1], "core:1")
-    assert placement(2, (0, 1, 2, 3)) == ([2, 3], "core:2")
-    assert placement(3, (0, 1, 2, 3)) == ([3, 3, 3], "core:3")
-    assert placement(2, (0, 1)) == ([0, 1], "core:0")
-    assert placement(1, (5,)) == ([None], "core:0")
+    assert placement(1, (0, 1)) == Placement([1], "core:1", "core:1")
+    assert placement(2, (0, 1, 2, 3)) == Placement([2, 3], "core:2", "core:2")
+    assert placement(3, (0, 1, 2, 3)) == Placement([3, 3, 3], "core:3", "core:3")
+    assert placement(2, (0, 1)) == Placement([0, 1], "core:0", "core:1")
+    assert placement(1, (5,)) == Placement([None], "core:0", "core:0")
