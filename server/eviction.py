@@ -17,7 +17,8 @@ from dataclasses import dataclass
 
 from websockets.asyncio.server import ServerConnection
 
-from posecast.server.room import Avatar, Spectator
+from posecast.server.fanout import Spectator
+from posecast.server.room import Avatar
 
 # a close frame queued behind a full buffer may never be read: after this long the
 # socket is dropped (the close code is still recorded on the server's side)

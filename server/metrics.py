@@ -45,6 +45,9 @@ class Metrics:
     # outbox, the avatar left, or the connection closed first)
     frames_delivered: int = 0
     frames_dropped: int = 0
+    # writes to a spectator's socket that carried more than one batch: it waited for a
+    # later slice of the fan-out while the next batch came (server.fanout)
+    writes_merged: int = 0
     rejected: Counter[str] = field(default_factory=Counter)  # by ErrorCode
     # refusals by the ServerLimits field that made them: a rate (frames, calibrations,
     # errors: the connection closed) or a cap (rooms, players_per_room, ...)
@@ -90,6 +93,7 @@ class Metrics:
                 "internal_errors": self.internal_errors,
                 "frames_delivered": self.frames_delivered,
                 "frames_dropped": self.frames_dropped,
+                "writes_merged": self.writes_merged,
                 "viewer_reports": self.viewer_reports, "rejected": dict(self.rejected),
                 "limited": dict(self.limited),
                 "device_lost_frames": dict(self.device_lost_frames),

@@ -71,6 +71,9 @@ class SessionCollector(Collector):
         yield CounterMetricFamily("posecast_internal_errors", "Bugs met while handling "
                                   "a message or a connection (an alert: never expected).",
                                   value=m.internal_errors)
+        yield CounterMetricFamily("posecast_writes_merged", "Writes to a spectator's "
+                                  "socket that carried several batches (the fan-out ran "
+                                  "past a batch's interval).", value=m.writes_merged)
         yield CounterMetricFamily("posecast_rosters", "Roster messages sent to a room's "
                                   "spectators (changes merged per room).", value=m.rosters)
         rejected = CounterMetricFamily("posecast_rejections", "Messages and joins "

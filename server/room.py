@@ -23,9 +23,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
-from websockets.asyncio.server import ServerConnection, broadcast
-from websockets.protocol import State
-from websockets.server import ServerProtocol
+from websockets.asyncio.server import broadcast
 
 from posecast.protocol import (
     AvatarBatch,
@@ -46,10 +44,10 @@ from posecast.server.busy import OpenBursts
 from posecast.server.cadence import Cadence
 from posecast.server.clock import now
 from posecast.server.display_error import PoseHistory
+from posecast.server.fanout import FanOut, Spectator
 from posecast.server.framing import binary_frame
 from posecast.server.limits import ServerLimits
 from posecast.server.metrics import Metrics
-from posecast.server.outbox import Outbox
 from posecast.server.relay import BATCH, ROSTER, AvatarRecord
 from posecast.solver.calibration import Calibration
 from posecast.solver.plausible import check_t_pose
@@ -158,30 +156,6 @@ class Avatar:
     lost_bits: int = 0  # its devices its newest frame lacks (protocol.roles bits)
 
 
-# a spectator whose socket holds more unsent bytes than this is slow: its frames go
-# through its outbox (latest wins) instead of piling up in the kernel and the transport.
-# The kernel's share is capped (ServerLimits.send_unsent_bytes): a byte left in the
-# transport means the viewer is behind
-DIRECT_WRITE_LIMIT = 1
-
-
-@dataclass(eq=False)
-class Spectator:
-    outbox: Outbox[Delivery]
-    send_bytes: Callable[[bytes], Awaitable[None]]
-    task: asyncio.Task[None] | None = None
-    # the socket, for writing a batch straight from the solve (see Room.deliver_here);
-    # its transport and protocol looked up once here, not for every batch
-    connection: ServerConnection | None = None
-    transport: asyncio.Transport | None = field(default=None, init=False)
-    protocol: ServerProtocol | None = field(default=None, init=False)
-
-    def __post_init__(self) -> None:
-        if self.connection is not None:
-            self.transport = self.connection.transport
-            self.protocol = self.connection.protocol
-
-
 @dataclass
 class Room:
     name: str
@@ -216,6 +190,10 @@ class Room:
     # what they showed (server.display_error); None while no one does
     history: PoseHistory | None = None
     history_used_at: float = -math.inf  # server clock of the last sample taken
+    fanout: FanOut = field(init=False)  # the writes of its batches to its spectators
+
+    def __post_init__(self) -> None:
+        self.fanout = FanOut(self.spectators, self.metrics)
 
     # ------------------------------------------------------------------ players
     def find_by_resume(self, resume: str | None) -> Avatar | None:
@@ -439,34 +417,8 @@ class Room:
         self.deliver_here(shared)
 
     def deliver_here(self, shared: SharedBatch) -> None:
-        """The batch to this process's spectators (``deliver``): framed once, written to
-        every socket that keeps up; the others' outboxes get it (latest wins)."""
-        t = asyncio.get_running_loop().time()
-        n = shared.size
-        frame: bytes | None = None
-        behind: list[Spectator] = []
-        is_open, limit = State.OPEN, DIRECT_WRITE_LIMIT
-        # once per spectator per batch (1,000 spectators at 90 Hz: every object touched
-        # counts), so the checks are inline: the outbox has nothing queued and no rate to
-        # keep, the socket keeps up, and the connection is open and not closing: then the
-        # frame goes to its transport now. (No send to a spectator is fragmented, so none
-        # can be in the middle of a message: every one is whole bytes.)
-        for s in self.spectators.values():
-            tr = s.transport
-            if (tr is not None and s.outbox.ready(t) and tr.get_write_buffer_size() < limit
-                    and s.protocol.state is is_open  # type: ignore[union-attr]
-                    and not tr.is_closing()):
-                if frame is None:
-                    frame = shared.framed()
-                tr.write(frame)
-                s.outbox.sent_directly(n, t)
-            else:
-                behind.append(s)
-        self.metrics.frames_delivered += n * (len(self.spectators) - len(behind))
-        if behind:
-            deliveries = {a: (shared, i) for i, a in enumerate(shared.avatar_ids)}
-            for s in behind:
-                s.outbox.offer(deliveries)
+        """The batch to this process's spectators (``deliver``; ``server.fanout``)."""
+        self.fanout.deliver(shared)
         if self.history is not None:  # after the sends: the truth for display errors
             ids, t_capture, roots, rotations = shared.solved_rows()
             if ids:
@@ -534,6 +486,7 @@ class Room:
         """An encoded roster to every spectator of this process, written now: whatever
         batch follows must find it there first (a batch's rotations unpack by the
         rosters' codings)."""
+        self.fanout.flush()
         sockets = [s.connection for s in self.spectators.values() if s.connection is not None]
         if sockets:
             broadcast(sockets, data)
@@ -548,10 +501,10 @@ class Room:
 
     @property
     def settled(self) -> bool:
-        """No burst open, no roster change waiting, and no spectator's outbox holding
-        or sending a frame."""
+        """No burst open, no roster change waiting, no batch waiting for its slice, and
+        no spectator's outbox holding or sending a frame."""
         return not self._scheduled and not self._pending and self._roster_timer is None \
-            and all(
+            and self.fanout.idle and all(
             s.outbox.idle for s in self.spectators.values())
 
     def discard_pending(self) -> None:

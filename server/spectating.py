@@ -141,7 +141,7 @@ class SpectatingConnections:
                                      self.limits.roster_message_bytes)
         for part in parts:
             broadcast([ws], part)
-        room.spectators[conn_id] = spectator
+        room.fanout.add(conn_id, spectator)
         spectator.task = asyncio.get_running_loop().create_task(outbox.run())
         reports = Budget(self.limits.reports_per_s, self.limits.report_burst)
         try:
@@ -169,7 +169,9 @@ class SpectatingConnections:
             pass
         finally:
             room.spectators.pop(conn_id, None)
-            outbox.close()  # what it still holds counts as dropped
+            # the batches it waited for, and what its outbox still holds: dropped
+            self.metrics.frames_dropped += room.fanout.forget(spectator)
+            outbox.close()
             task = spectator.task
             task.cancel()
             await asyncio.wait([task])  # and so does a send this cuts short
