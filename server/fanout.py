@@ -99,6 +99,7 @@ class FanOut:
         self._oldest = 1
         self._came: dict[int, float] = {}
         self._frames_to: dict[int, int] = {0: 0}
+        self._offers: dict[int, dict[int, Delivery]] = {}  # a kept batch, as outboxes take it
         # what a spectator marked at k is written: the batches after k, joined (once
         # per batch for all spectators marked at k), and their avatar-frames
         self._owed: dict[int, tuple[bytes, int, int]] = {}
@@ -128,6 +129,7 @@ class FanOut:
         self._frames_to.pop(k - FRAMES_KEPT, None)
         while self._oldest < k and t - self._came[self._oldest] > MAX_LAG_S:
             del self._batches[self._oldest], self._came[self._oldest]
+            self._offers.pop(self._oldest, None)
             self._oldest += 1
         self._owed.clear()
         if self._at < len(self._round):
@@ -187,7 +189,7 @@ class FanOut:
         latest, metrics, clock = self.latest, self.metrics, time.perf_counter
         is_open, limit, check = State.OPEN, DIRECT_WRITE_LIMIT, CHECK_EVERY
         frame: bytes | None = None
-        written = delivered = 0
+        size = written = delivered = 0
         while True:
             spectators, at = self._round, self._at
             # once per spectator per batch (1,000 spectators at 90 Hz: every object
@@ -209,8 +211,9 @@ class FanOut:
                     if mark == latest - 1:  # the usual case: the newest batch alone
                         if frame is None:
                             frame = self._batches[latest].framed()
+                            size = self._batches[latest].size
                         tr.write(frame)
-                        n = self._batches[latest].size
+                        n = size
                     else:
                         data, n, skipped = self._since(mark)
                         tr.write(data)
@@ -240,7 +243,10 @@ class FanOut:
         self.metrics.frames_dropped += self._frames_after(s.mark) - (
             frames_to[latest] - frames_to[first - 1])
         for k in range(first, latest + 1):
-            s.outbox.offer(deliveries(self._batches[k]))
+            offered = self._offers.get(k)
+            if offered is None:  # once per batch for all the spectators behind
+                offered = self._offers[k] = deliveries(self._batches[k])
+            s.outbox.offer(offered)
 
     def _slice(self) -> None:
         self._write(asyncio.get_running_loop().time(), time.perf_counter() + self.slice_s)

@@ -9,7 +9,7 @@ player's ``Cadence``: its frames come one period apart). It is solved as soon as
 of these holds, or at the latest COALESCE_MAX_S after its first frame. There is no fixed
 tick to wait for: a lone frame, or one whose player is out of step with the others, is
 solved on the next pass. The batch is solved in one call, turned into one AvatarBatch,
-encoded once and offered to every spectator's latest-wins outbox.
+encoded once and written to the spectators (``server.fanout``).
 """
 
 from __future__ import annotations

@@ -162,3 +162,29 @@ def test_a_room_written_a_spectator_a_slice_loses_no_frame_of_its_players() -> N
                 await ws.close()
 
     asyncio.run(main())
+
+
+@pytest.mark.usefixtures("one_write_a_slice")
+def test_a_spectator_that_leaves_before_its_turn_has_its_frames_counted_dropped() -> None:
+    session = Session()
+
+    async def main() -> None:
+        async with server(session) as (url, _, _):
+            room, clients = await room_with(session, url, SPECTATORS)
+            m = session.metrics
+            room.fanout.deliver(batch(0))  # written to the first only; the rest wait
+            assert not room.fanout.idle
+            room.fanout._next_slice.cancel()  # type: ignore[union-attr]  # they keep waiting
+            leaving = clients[-3:]
+            for ws in leaving:
+                await ws.close()
+            while len(room.spectators) > SPECTATORS - len(leaving):
+                await asyncio.sleep(0.01)
+            room.fanout.flush()
+            assert room.fanout.idle
+            assert (m.frames_delivered, m.frames_dropped) == (SPECTATORS - 3, 3)
+            for ws in clients[:-3]:
+                assert await messages(ws, 1) == [("batch", 0)]
+                await ws.close()
+
+    asyncio.run(main())
