@@ -147,9 +147,9 @@ class FanOut:
             self._next_slice = None
         self._write(asyncio.get_running_loop().time(), math.inf)
 
-    def forget(self, spectator: Spectator | None) -> int:
+    def forget(self, spectator: Spectator) -> int:
         """A spectator left: the avatar-frames it was still owed (now dropped)."""
-        if spectator is None or spectator.mark >= self.latest:
+        if spectator.mark >= self.latest:
             return 0
         owed = self._frames_after(spectator.mark)
         spectator.mark = self.latest  # a round that still lists it skips it
@@ -169,16 +169,20 @@ class FanOut:
         self._at = 0
         self._again = False
 
+    def _span(self, mark: int) -> tuple[int, int, int]:
+        """For a spectator marked at ``mark``: the first batch it is still owed (those
+        of the last MAX_LAG_S), the avatar-frames from there on, and those skipped."""
+        first = max(mark + 1, self._oldest)
+        frames = self._frames_to[self.latest] - self._frames_to[first - 1]
+        return first, frames, self._frames_after(mark) - frames
+
     def _since(self, mark: int) -> tuple[bytes, int, int]:
-        """What a spectator marked at ``mark`` is written: the bytes of the batches since
-        (those of the last MAX_LAG_S), their avatar-frames, and those skipped."""
+        """What a spectator marked at ``mark`` is written (``_span``): the bytes of its
+        batches, joined once for all who share the mark, their frames, and those skipped."""
         owed = self._owed.get(mark)
         if owed is None:
-            latest, frames_to = self.latest, self._frames_to
-            first = max(mark + 1, self._oldest)
-            data = b"".join(self._batches[k].framed() for k in range(first, latest + 1))
-            frames = frames_to[latest] - frames_to[first - 1]
-            skipped = self._frames_after(mark) - frames
+            first, frames, skipped = self._span(mark)
+            data = b"".join(self._batches[k].framed() for k in range(first, self.latest + 1))
             owed = self._owed[mark] = (data, frames, skipped)
         return owed
 
@@ -238,11 +242,9 @@ class FanOut:
 
     def _to_outbox(self, s: Spectator) -> None:
         """A spectator behind: its outbox takes what it is owed (latest wins there)."""
-        latest, frames_to = self.latest, self._frames_to
-        first = max(s.mark + 1, self._oldest)
-        self.metrics.frames_dropped += self._frames_after(s.mark) - (
-            frames_to[latest] - frames_to[first - 1])
-        for k in range(first, latest + 1):
+        first, _, skipped = self._span(s.mark)
+        self.metrics.frames_dropped += skipped
+        for k in range(first, self.latest + 1):
             offered = self._offers.get(k)
             if offered is None:  # once per batch for all the spectators behind
                 offered = self._offers[k] = deliveries(self._batches[k])

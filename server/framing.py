@@ -4,7 +4,7 @@ websockets' ``broadcast`` builds each connection's frame anew (its header, a cop
 payload, the protocol's bookkeeping) before writing it. A server's frame (RFC 6455 5.2)
 is the same for every connection: unmasked, no extension (``serve(compression=None)``),
 a binary opcode, the payload's length. So the room builds those bytes once per batch and
-writes them to each transport (``Room.deliver_here``), which is all websockets itself
+writes them to each transport (``server.fanout``), which is all websockets itself
 would do for a connection that is open and not in the middle of a fragmented message.
 """
 
