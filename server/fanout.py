@@ -16,7 +16,8 @@ serves in time has every round done before the next batch; a larger one pays a l
 latency instead of a write per batch, and latest wins only past MAX_LAG_S. A
 spectator's batches always go out in order, and all are written before a roster
 (``flush``: a batch unpacks by the rosters before it). Nothing here costs per spectator
-when a batch comes: only the visits of a round do.
+when a batch comes: only the visits of a round do. Each round starts one place further
+along the room, so the last to join do not wait longest at every batch.
 """
 
 from __future__ import annotations
@@ -104,6 +105,7 @@ class FanOut:
         # per batch for all spectators marked at k), and their avatar-frames
         self._owed: dict[int, tuple[bytes, int, int]] = {}
         self._round: list[Spectator] = []  # the spectators of the round under way
+        self._turn = 0  # where the room's order starts in it
         self._at = 0  # the next one's index in it
         self._again = False  # a batch came during the round: another round follows
         self._next_slice: asyncio.Handle | None = None
@@ -165,7 +167,17 @@ class FanOut:
 
     # ------------------------------------------------------------------ writing
     def _start_round(self) -> None:
-        self._round = list(self.spectators.values())
+        """The next round's order: the room's, turned by one place a round, so that no
+        spectator (the last to join) waits for a whole round at every batch: over as
+        many rounds as spectators, each has had every place. One place and no more: a
+        spectator's visits stay a round apart (turned by more, the rounds of a busy
+        room wrote later on average: bench fanout, 1,100 spectators)."""
+        spectators = list(self.spectators.values())
+        n = len(spectators)
+        if n > 1:
+            self._turn = (self._turn + 1) % n
+            spectators = spectators[self._turn:] + spectators[:self._turn]
+        self._round = spectators
         self._at = 0
         self._again = False
 

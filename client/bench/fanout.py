@@ -22,8 +22,8 @@ server pays for its own spectators alike.
 The load is spectators that count the bytes they receive and nothing else
 (``ByteCounter``): a websockets client parses each frame in Python at about the cost of
 the server's send, and would measure the load generator instead of the server. A few
-real spectators per process (the probes, joined last: the last of its fan-out) decode
-everything and give the latency.
+real spectators per process (the probes, joined last; the fan-out's rounds turn, so they
+have each place in turn) decode everything and give the latency.
 """
 
 from __future__ import annotations
@@ -68,8 +68,9 @@ MAX_LOST = 0.01  # of the players' frames, at any process's spectators
 BUDGET_MS = 25.0
 CONNECT_AT_ONCE = 64  # handshakes in flight while a step's spectators join
 SETTLE_S = 0.5  # after the spectators joined, before measuring
-# real spectators per process, joined after the load (the last of its fan-out): a p99
-# of one probe's 3 s is its third worst frame, which made the steps a lottery
+# real spectators per process, joined after the load (in turn at each place of the
+# fan-out's rounds): a p99 of one probe's 3 s is its third worst frame, which made the
+# steps a lottery
 PROBES = 3
 PROBES_JOIN_S = 30.0  # for a process's probes to be in the room with synced clocks
 # the load generator yields the cores to the servers, as on machines of its own; it needs

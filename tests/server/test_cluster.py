@@ -404,10 +404,11 @@ def test_bench_fanout_measures_each_process_count(
     """The bench's machinery at a toy size: both process counts reach the cap with every
     probe's latency measured and the players' frames reaching every spectator, a line
     per step as it goes. A step that fails once is tried again (the bench's own rule
-    against a loaded machine's hiccup), so a count may appear twice, failed then held."""
+    against a loaded machine's hiccup), so a count may appear twice, failed then held.
+    One count a run (the start is the cap): the search's steps are _Search's test's."""
     if shutil.which("redis-server") is None:
         pytest.skip("no redis-server here (apt-get install redis-server)")
-    assert main(["bench", "fanout", "--processes", "1,2", "--start", "6", "--max", "9",
+    assert main(["bench", "fanout", "--processes", "1,2", "--start", "9", "--max", "9",
                  "--seconds", "3", "--budget-ms", "1000", "--repeat", "2", "--json"]) == 0
     out = capsys.readouterr()
     doc = json.loads(out.out)
@@ -419,7 +420,7 @@ def test_bench_fanout_measures_each_process_count(
         assert len(r["steps"]) == 2  # a list of steps per run
         for run in r["steps"]:
             held = [s for s in run if s["held"]]
-            assert [s["spectators"] for s in held] == [6, 9]
+            assert [s["spectators"] for s in held] == [9]
             # a failed step is followed by the same count again, which then held
             for before, after in itertools.pairwise(run):
                 if not before["held"]:
@@ -436,7 +437,7 @@ def test_bench_fanout_measures_each_process_count(
         assert r["capture_to_spectator_p99_ms"] == r["steps"][0][-1][
             "capture_to_spectator_p99_ms"]
     assert doc["results"][1]["ratio"] == 1.0
-    assert out.err.count("spectators: p99") == steps_seen >= 8
+    assert out.err.count("spectators: p99") == steps_seen >= 4
 
 
 def test_bench_fanout_budget_is_the_cli_default() -> None:

@@ -192,3 +192,28 @@ def test_a_spectator_that_leaves_before_its_turn_has_its_frames_counted_dropped(
                 await ws.close()
 
     asyncio.run(main())
+
+
+@pytest.mark.usefixtures("one_write_a_slice")
+def test_each_round_starts_a_place_further_so_no_spectator_always_waits_longest() -> None:
+    # one write a slice: a batch is written to the round's first spectator at once, the
+    # others at later passes of the loop. Over as many rounds as spectators (a turn of
+    # one place a round), each was first once
+    session = Session()
+
+    async def main() -> None:
+        async with server(session) as (url, _, _):
+            room, clients = await room_with(session, url, SPECTATORS)
+            firsts = []
+            for seq in range(SPECTATORS):
+                room.fanout.deliver(batch(seq))
+                firsts += [c for c, s in room.spectators.items()
+                           if s.mark == room.fanout.latest]
+                await settle(room)
+            assert sorted(firsts) == sorted(room.spectators)
+            for ws in clients:  # and every spectator still got every batch, in order
+                assert await messages(ws, SPECTATORS) == [
+                    ("batch", k) for k in range(SPECTATORS)]
+                await ws.close()
+
+    asyncio.run(main())
