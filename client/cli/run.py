@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
@@ -85,7 +86,8 @@ def _command(args: argparse.Namespace, notice: CompileNotice) -> int:
     from posecast.client.jit import warm_kernels
 
     if args.command == "warm":
-        print(f"kernels ready in {warm_kernels(notice):.1f} s")
+        workers = min(2, os.cpu_count() or 1)  # the slowest step takes most of the time
+        print(f"kernels ready in {warm_kernels(notice, workers):.1f} s")
         return 0
     if args.command in ("demo", "bench"):  # before their processes start, each would compile
         warm_kernels(notice)
