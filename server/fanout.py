@@ -16,8 +16,9 @@ serves in time has every round done before the next batch; a larger one pays a l
 latency instead of a write per batch, and latest wins only past MAX_LAG_S. A
 spectator's batches always go out in order, and all are written before a roster
 (``flush``: a batch unpacks by the rosters before it). Nothing here costs per spectator
-when a batch comes: only the visits of a round do. Each round starts one place further
-along the room, so the last to join do not wait longest at every batch.
+when a batch comes: only the visits of a round do. A round that outlasted its slice is
+followed by one starting a place further along the room, so that in a large room the
+last to join do not wait longest at every batch.
 """
 
 from __future__ import annotations
