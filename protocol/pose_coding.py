@@ -24,6 +24,7 @@ bits (71 bytes) instead of 53 x 5 bytes.
 from __future__ import annotations
 
 import functools
+import itertools
 import math
 from collections.abc import Mapping, Sequence
 from typing import Any, NamedTuple
@@ -498,6 +499,12 @@ def pack_batch(avatar_ids: Sequence[int], rotations: Sequence[Array] | Array,
     return b"".join(parts)
 
 
+# the content of each RosterCodings.decoding_key given out, and the next key (never one
+# given out before, even after the map is cleared)
+_DECODINGS: dict[tuple[Any, ...], int] = {}
+_DECODING_KEYS = itertools.count()
+
+
 class RosterCodings(dict[int, "PoseCoding | None"]):
     """Each avatar's PoseCoding, as a stream's rosters give them: what a viewer needs to
     unpack the batches that follow (``codec.decode(..., codings=...)``). It remembers
@@ -507,6 +514,12 @@ class RosterCodings(dict[int, "PoseCoding | None"]):
         super().__init__()
         self.plans: dict[tuple[bytes, bytes], _Plan] = {}
         self._table: _Table | bool | None = False
+        self._key: int | bool | None = False
+
+    def clear(self) -> None:
+        super().clear()
+        self.plans.clear()
+        self._table = self._key = False
 
     def learn(self, message: object) -> None:
         """Take a roster's avatars and removals (any other message: nothing)."""
@@ -517,7 +530,28 @@ class RosterCodings(dict[int, "PoseCoding | None"]):
         for info in message.avatars:  # type: ignore[attr-defined]
             self[info.avatar_id] = info.coding
         self.plans.clear()
-        self._table = False
+        self._table = self._key = False
+
+    def decoding_key(self) -> int | None:
+        """A number two RosterCodings share exactly when they decode every batch alike
+        (the same avatars, each with the same coding and rest): the spectators of a room
+        in one process decode each batch once (``codec.decode_stream``). None unless
+        every avatar has a coding of one kind (``table``)."""
+        if self._key is False:
+            table = self.table()
+            if table is None:
+                self._key = None
+            else:
+                args = table.coding.kernel_args()
+                content = (tuple((a.shape, a.tobytes()) for a in args),
+                           table.ids.tobytes(), table.rests.shape, table.rests.tobytes())
+                key = _DECODINGS.get(content)
+                if key is None:
+                    if len(_DECODINGS) > 256:  # rosters come from servers: bounded
+                        _DECODINGS.clear()
+                    key = _DECODINGS[content] = next(_DECODING_KEYS)
+                self._key = key
+        return self._key
 
     def table(self) -> _Table | None:
         """When every avatar has a coding of one kind (a room solved on one rig: the

@@ -209,7 +209,7 @@ class _Sender:
 
     def send(self, received: ReceivedFrame, stats: VmcStats) -> None:
         assert self.hmap is not None
-        batch, row = received.batch, received.row
+        batch, row, _ = received
         start = int(np.sum(batch.joint_counts[:row]))
         rotations = batch.rotations[start:start + int(batch.joint_counts[row])]
         t = now()

@@ -78,8 +78,9 @@ class LatencyRecorder:
         self.capacity = capacity
         self._buffers: dict[str, _Samples] = {}
         # add_batch's columns: t_capture, t_server_receive, t_solved, t_sent, t_received,
-        # t_decoded
-        self._times = tuple(_Samples(capacity) for _ in range(6))
+        # t_decoded (NaN: not known), a row per avatar-frame
+        self._times = np.empty((6, max(capacity, 1)))
+        self._rows = 0
 
     def add_batch(self, t_capture: NDArray[np.float64], t_server_receive: NDArray[np.float64],
                   t_solved: NDArray[np.float64], t_sent: float,
@@ -88,21 +89,26 @@ class LatencyRecorder:
         server clock), kept as they are: its stages are computed when read, for all
         batches at once. Computing five stages per batch as it arrived cost a spectator
         as much as decoding the batch, on the path of every spectator after it in the
-        same process."""
-        n = t_capture.shape[0]
-        columns = self._times
-        for column, values in zip(columns[:3], (t_capture, t_server_receive, t_solved),
-                                  strict=True):
-            column.extend(values)
-        for column, value in ((columns[3], t_sent), (columns[4], t_received),
-                              (columns[5], t_decoded)):
-            column.fill(n, math.nan if value is None else value)
+        same process; six slices of one table here."""
+        start, end = self._rows, self._rows + t_capture.shape[0]
+        times = self._times
+        if end > times.shape[1]:
+            grown = np.empty((6, max(end, 2 * times.shape[1])))
+            grown[:, :start] = times[:, :start]
+            times = self._times = grown
+        times[0, start:end] = t_capture
+        times[1, start:end] = t_server_receive
+        times[2, start:end] = t_solved
+        times[3, start:end] = t_sent
+        times[4, start:end] = math.nan if t_received is None else t_received
+        times[5, start:end] = math.nan if t_decoded is None else t_decoded
+        self._rows = end
 
     def _fold(self) -> None:
         """Turn the batch times into stage samples (rows without a receive time get no
         receive-side stages)."""
         t_capture, t_server_receive, t_solved, t_sent, t_received, t_decoded = (
-            c.view() for c in self._times)
+            self._times[:, :self._rows])
         synced = ~np.isnan(t_received)
         for rows, received in ((synced, t_received), (~synced, None)):
             if rows.any():
@@ -114,13 +120,12 @@ class LatencyRecorder:
             self._buffer("capture_to_decoded").extend(stage_latencies(
                 t_capture[rows], t_server_receive[rows], t_solved[rows], t_sent[rows],
                 t_decoded=t_decoded[rows])["capture_to_decoded"])
-        for c in self._times:
-            c.n = 0
+        self._rows = 0
 
     @property
     def _stages(self) -> dict[str, _Samples]:
         """Every stage's samples, the batches' times included."""
-        if self._times[0].n:
+        if self._rows:
             self._fold()
         return self._buffers
 

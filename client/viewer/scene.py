@@ -16,7 +16,7 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
-from posecast.client.session.spectator import ReceivedFrame, Spectator
+from posecast.client.session.spectator import ReceivedFrame, Spectator, frame_of
 from posecast.client.viewer.camera import Camera, OrbitCamera, first_person, mirror
 from posecast.client.viewer.interpolation import Interpolator, Mode, Sampled
 from posecast.client.viewer.renderer import AvatarDraw, PosedScene
@@ -110,7 +110,7 @@ class SpectatorScene:
             for avatar_id, received in list(self.spectator.latest.items()):
                 if self._polled.get(avatar_id) is not received:
                     self._polled[avatar_id] = received
-                    self.interpolator.push(received.frame, received.t_received)
+                    self.interpolator.push(frame_of(received), received[2])
 
     def frame(self, now: float) -> SceneFrame:
         """Poses of every drawable avatar at local time ``now`` (``client.sources.now``)."""
@@ -133,12 +133,15 @@ class SpectatorScene:
         """The avatar's devices its newest frame lacked (protocol.roles bits; 0 before
         its first frame). The newest, not the drawn one: it says what is lost now."""
         received = self.spectator.latest.get(avatar_id)
-        return 0 if received is None else int(received.batch.lost[received.row])
+        if received is None:
+            return 0
+        batch, row, _ = received
+        return int(batch.lost[row])
 
     def newest(self) -> list[tuple[AvatarInfo, AvatarFrame]]:
         """Every avatar of the roster that has a frame, with its newest, by id."""
         roster, latest = self.spectator.roster, self.spectator.latest
-        return [(roster[a], latest[a].frame) for a in sorted(roster) if a in latest]
+        return [(roster[a], frame_of(latest[a])) for a in sorted(roster) if a in latest]
 
     @property
     def mode(self) -> Mode:

@@ -175,6 +175,55 @@ def test_a_roster_carries_the_coding_and_a_stream_unpacks_what_follows(rig: Rig)
         decode_stream(data, codings)
 
 
+def test_streams_with_the_same_codings_share_a_batch_decoded_once(rig: Rig) -> None:
+    """Spectators of one room in one process get the same bytes of each batch: the
+    second stream gets the first one's AvatarBatch (frozen, read-only arrays), from
+    bytes or a bytearray (websockets' frames). A stream whose rosters differ in any way
+    (another rest, another avatar, none yet), other bytes, or a smaller size limit,
+    decodes for itself, and gets what a decode of its own gives."""
+    sk = rig.skeleton
+    coding = rig_coding(rig)
+
+    def roster(rest_scale: float = 1.0, ids: tuple[int, ...] = (4, 5)) -> AvatarRoster:
+        return AvatarRoster(avatars=tuple(AvatarInfo(
+            avatar_id=a, display_name="p", joint_names=sk.names,
+            parents=tuple(int(p) for p in sk.parents), rest_offsets=sk.offsets * rest_scale,
+            coding=coding) for a in ids))
+
+    def stream(r: AvatarRoster | None) -> RosterCodings:
+        codings = RosterCodings()
+        if r is not None:
+            decode_stream(encode(r), codings)
+        return codings
+
+    poses = _within_limits(rig, coding, np.random.default_rng(8), 2)
+    batch = AvatarBatch.from_arrays([4, 5], [9, 3], np.zeros((2, 3)), poses, [1.0, 1.0],
+                                    [1.0, 1.0], 1.0, 1.001)
+    data = encode(batch, stream(roster()))
+    a, b = stream(roster()), stream(roster())
+    first = decode_stream(data, a)
+    assert decode_stream(bytearray(data), b) is first
+    assert decode_stream(data, a) is first  # the same stream, a batch sent again
+    assert not first.rotations.flags.writeable and not first.roots.flags.writeable
+    other_rest = stream(roster(rest_scale=1.1))  # a coding's rest is not in the roster
+    assert other_rest.decoding_key() == a.decoding_key()  # ... of joint offsets: alike
+    for codings in (stream(roster(ids=(4, 5, 6))), stream(roster(ids=(5, 4, 7)))):
+        assert codings.decoding_key() != a.decoding_key()
+        got = decode_stream(data, codings)
+        assert got is not first and got == first  # decoded again, the same batch
+    assert stream(None).decoding_key() is None
+    with pytest.raises(ProtocolError, match="bytes of rotations"):
+        decode_stream(data, stream(None))  # 5 bytes a joint without a coding
+    changed = bytearray(data)
+    changed[-1] ^= 1  # the last avatar's lost devices, the map's last value
+    got = decode_stream(bytes(changed), b)
+    assert got is not first and got.lost.tolist() == [0, 256]
+    with pytest.raises(ProtocolError, match="limit is 100"):
+        decode_stream(data, b, max_bytes=100)
+    b.clear()  # forgetting the room forgets how it decodes
+    assert b.decoding_key() is None
+
+
 def test_a_coding_is_refused_for_another_skeleton(rig: Rig) -> None:
     sk = rig.skeleton
     with pytest.raises(ValueError, match="coding: rest has 53 rows for 2 joints"):

@@ -331,7 +331,7 @@ def test_a_viewer_that_draws_slowly_shows_poses_a_draw_old_not_seconds() -> None
             spectator = Spectator(url, ROOM, "slow viewer")
             receiving = asyncio.create_task(spectator.run())
             while not stop.is_set():
-                newest = [f.batch.t_capture[f.row] for f in spectator.latest.values()]
+                newest = [b.t_capture[r] for b, r, _ in spectator.latest.values()]
                 if newest:
                     lags.append(now() - float(max(newest)))
                 time.sleep(draw_s)  # the draw: nothing else runs in this loop meanwhile

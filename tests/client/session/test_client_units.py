@@ -10,7 +10,6 @@ from __future__ import annotations
 import asyncio
 import socket
 import time
-from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -20,7 +19,7 @@ from posecast.client.builtin import builtin_motion_path
 from posecast.client.measure.latency import LatencyRecorder, format_latency_table
 from posecast.client.session.connection import SessionError, open_session
 from posecast.client.session.player import Ticker, calibrate_message, tracker_frame
-from posecast.client.session.spectator import Spectator
+from posecast.client.session.spectator import Spectator, frame_of
 from posecast.client.sources.base import DeviceSample
 from posecast.client.sources.bvh_source import BvhSource
 from posecast.protocol import (
@@ -81,7 +80,7 @@ def test_batch_times_give_the_stages_of_each_frame() -> None:
     rng = np.random.default_rng(5)
     rec = LatencyRecorder(capacity=4)  # tiny: the time columns grow too
     expected = LatencyRecorder()
-    for k in range(40):
+    for k in range(300):
         n = int(rng.integers(1, 9))
         t_capture = 100.0 + k / 90 + rng.uniform(0.0, 0.001, n)
         t_server_receive = t_capture + rng.uniform(0.0002, 0.002, n)
@@ -100,7 +99,7 @@ def test_batch_times_give_the_stages_of_each_frame() -> None:
             if t_decoded is not None:
                 expected.add_values("capture_to_decoded",
                                     np.array([t_decoded - t_capture[i]]))
-        if k == 20:  # reading in the middle, then adding more, loses nothing
+        if k in (20, 150):  # reading in between, then adding more, loses nothing
             assert rec.counts()["server"] == expected.counts()["server"]
     assert rec.counts() == expected.counts()
     assert rec.counts()["capture_to_spectator"] < rec.counts()["server"]
@@ -243,44 +242,6 @@ def test_shared_ticker_calls_every_player_on_one_slot() -> None:
     asyncio.run(main())
 
 
-def test_a_shared_ticker_reads_every_player_then_sends_every_frame() -> None:
-    """Two steps a slot: each callback makes its frame, then each send it returned
-    writes, in the players' order, so that reading one player's source does not hold up
-    the frames of those before it; a send that raises leaves the others sent."""
-    async def main() -> None:
-        ticker = Ticker(50.0)
-        events: list[str] = []
-        done = asyncio.Event()
-
-        def player(i: int) -> Callable[[int], Callable[[], None] | None]:
-            def on_slot(k: int) -> Callable[[], None] | None:
-                events.append(f"read {i}")
-                if i == 3:
-                    return None  # a player with nothing to send this slot
-                return lambda: (events.append(f"send {i}"), done.set())
-
-            return on_slot
-
-        def broken_send() -> None:
-            raise RuntimeError("a bug in one player's send")
-
-        players = [player(i) for i in range(4)]
-        broken = lambda k: broken_send  # noqa: E731
-        ticker.subscribe(players[0])
-        ticker.subscribe(broken)
-        for p in players[1:]:
-            ticker.subscribe(p)
-        async with asyncio.timeout(30):
-            await done.wait()
-        for p in [*players, broken]:
-            ticker.unsubscribe(p)
-        assert ticker._timer is None
-        assert events[:7] == ["read 0", "read 1", "read 2", "read 3",
-                              "send 0", "send 1", "send 2"]
-
-    asyncio.run(main())
-
-
 def test_ticker_rejects_bad_rates() -> None:
     for rate in (0.0, -5.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="positive"):
@@ -398,8 +359,8 @@ def test_spectator_records_batches_on_the_server_clock() -> None:
     assert lat.counts()["server"] == 3
     assert spec.stats.frames_received == 3 and spec.stats.batches_received == 2
     assert spec.stats.frames_per_avatar == {1: 2, 2: 1}
-    assert spec.latest[1].frame.seq == 1 and spec.latest[1].t_received == 100.003
-    assert spec.latest[2].frame.seq == 7
+    assert frame_of(spec.latest[1]).seq == 1 and spec.latest[1][2] == 100.003
+    assert frame_of(spec.latest[2]).seq == 7
 
 
 def test_spectator_roster_adds_updates_and_removes() -> None:
