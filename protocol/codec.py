@@ -10,6 +10,7 @@ checks the size before parsing and raises only ``ProtocolError``, whatever the b
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from collections.abc import Sequence
 from typing import Any
 
@@ -82,16 +83,19 @@ def decode_stream(data: bytes | bytearray | memoryview | str, codings: RosterCod
     message = decode(data, max_bytes=max_bytes, codings=codings)
     codings.learn(message)
     if key is not None and type(message) is AvatarBatch:
-        while len(_SHARED_BATCHES) >= SHARED_BATCHES_KEPT:
-            _SHARED_BATCHES.pop(next(iter(_SHARED_BATCHES)), None)
         _SHARED_BATCHES[key] = message
+        while len(_SHARED_BATCHES) > SHARED_BATCHES_KEPT:
+            try:  # the oldest goes; one C call, so a viewer's thread cannot come between
+                _SHARED_BATCHES.popitem(last=False)
+            except KeyError:
+                break
     return message
 
 
 # the latest batches decode_stream decoded, by (RosterCodings.decoding_key, their bytes):
 # enough for a process's rooms, whose spectators all get a batch within milliseconds
 SHARED_BATCHES_KEPT = 8
-_SHARED_BATCHES: dict[tuple[int, bytes], AvatarBatch] = {}
+_SHARED_BATCHES: OrderedDict[tuple[int, bytes], AvatarBatch] = OrderedDict()
 
 
 def decode_client(data: bytes | bytearray | memoryview | str) -> ClientMessage:

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from posecast.protocol import AvatarBatch, AvatarInfo, AvatarRoster, ProtocolError, encode
-from posecast.protocol.codec import decode_stream
+from posecast.protocol.codec import SHARED_BATCHES_KEPT, decode_stream
 from posecast.protocol.pose_coding import (
     QUATERNION_BITS,
     PoseCoding,
@@ -222,6 +222,9 @@ def test_streams_with_the_same_codings_share_a_batch_decoded_once(rig: Rig) -> N
         decode_stream(data, b, max_bytes=100)
     b.clear()  # forgetting the room forgets how it decodes
     assert b.decoding_key() is None
+    for k in range(SHARED_BATCHES_KEPT):  # newer batches push the first one out
+        decode_stream(encode(batch.model_copy(update={"t_sent": 2.0 + k}), a), a)
+    assert decode_stream(data, a) is not first
 
 
 def test_a_coding_is_refused_for_another_skeleton(rig: Rig) -> None:
