@@ -43,8 +43,6 @@ from posecast.protocol import (
 
 log = logging.getLogger(__name__)
 
-
-
 # An avatar's latest frame: row ``row`` of ``batch``, and when it arrived (local clock:
 # ``client.sources.now``). A plain tuple: 16 are made per batch (``frame_of`` builds the
 # AvatarFrame, which a headless spectator never needs).
