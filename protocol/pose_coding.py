@@ -445,18 +445,22 @@ Codings = Mapping[int, "PoseCoding | None"]  # avatar id -> its roster's coding
 _STRUCTURES: dict[tuple[Any, ...], tuple[NDArray[Any], ...]] = {}
 
 
+def _kernel_key(coding: PoseCoding) -> tuple[bytes, ...]:
+    """What a coding's kernel arrays hold (its rest aside): alike codings, alike keys."""
+    return tuple(a.tobytes() for a in coding.kernel_args())
+
+
 def _structure(coding: PoseCoding) -> tuple[NDArray[Any], ...]:
     """The kernel arrays of codings alike but for their rest: one object for all of a
     room's avatars, so that a batch decodes in one call per kind of skeleton."""
     shared = coding.__dict__.get("_structure")
     if shared is None:
-        args = coding.kernel_args()
-        key = tuple(a.tobytes() for a in args)
+        key = _kernel_key(coding)
         shared = _STRUCTURES.get(key)
         if shared is None:
             if len(_STRUCTURES) > 64:  # codings come from servers: bounded
                 _STRUCTURES.clear()
-            shared = _STRUCTURES[key] = args
+            shared = _STRUCTURES[key] = coding.kernel_args()
         coding.__dict__["_structure"] = shared
     return shared
 
@@ -542,9 +546,8 @@ class RosterCodings(dict[int, "PoseCoding | None"]):
             if table is None:
                 self._key = None
             else:
-                args = table.coding.kernel_args()
-                content = (tuple((a.shape, a.tobytes()) for a in args),
-                           table.ids.tobytes(), table.rests.shape, table.rests.tobytes())
+                content = (_kernel_key(table.coding), table.ids.tobytes(),
+                           table.rests.shape, table.rests.tobytes())
                 key = _DECODINGS.get(content)
                 if key is None:
                     if len(_DECODINGS) > 256:  # rosters come from servers: bounded

@@ -466,13 +466,15 @@ class Session:
             return
         on_message, on_error = self._handlers
         for data, t in read:
+            msg: Message | ProtocolError | None
             try:
-                try:
-                    msg = self._take(data, t)
-                except ProtocolError as err:
-                    on_error(err)
-                    continue
-                if msg is not None:
+                msg = self._take(data, t)
+            except ProtocolError as err:
+                msg = err
+            try:
+                if isinstance(msg, ProtocolError):
+                    on_error(msg)
+                elif msg is not None:
                     on_message(msg, t)
             except Exception as exc:  # a handler's bug: the reading task raises it
                 self._failed = exc

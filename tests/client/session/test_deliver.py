@@ -14,7 +14,7 @@ from posecast.client.session.connection import Session as ClientSession
 from posecast.client.session.player import Player
 from posecast.client.session.spectator import Spectator
 from posecast.client.sources.bvh_source import BvhSource
-from posecast.protocol import AvatarBatch, ClockEstimator
+from posecast.protocol import AvatarBatch, AvatarRoster, ClockEstimator
 from posecast.server.app import Session
 
 TIMEOUT = 60.0
@@ -30,8 +30,8 @@ class Counting(Spectator):
         self.fail_at = fail_at
         self.in_room = asyncio.Event()
 
-    def on_roster(self, roster: object) -> None:
-        super().on_roster(roster)  # type: ignore[arg-type]
+    def on_roster(self, roster: AvatarRoster) -> None:
+        super().on_roster(roster)
         self.in_room.set()
 
     def on_batch(self, batch: AvatarBatch, t_local: float, clock: ClockEstimator) -> None:
