@@ -47,8 +47,12 @@ lint: setup
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/mypy
 
+# two workers, a test file each at a time (a file's module fixtures stay in one
+# process): the suite waits on subprocesses, sockets and clocks more than it computes
+TEST_WORKERS ?= 2
+
 test: lint $(TEST_STAMP)
-	$(VENV)/bin/pytest
+	$(VENV)/bin/pytest -n $(TEST_WORKERS) --dist loadfile
 
 clean:
 	rm -rf $(VENV) build *.egg-info $(WEB)/node_modules server/static

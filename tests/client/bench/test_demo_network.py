@@ -14,9 +14,15 @@ from posecast.client.viewer.interpolation import Mode
 WAIT = 300.0  # a subprocess that spawns a server, players and the emulator, on 2 cores
 
 
+# the first second of an avatar is not scored (display_error.SETTLE_S): 3 s once left
+# 11 scored frames in a mode (~190 as a rule, also beside a CPU hog or a 16 + 16 demo)
+# while the suite ran on two workers; the cause was not found, so a failure says more
+DEMO_S = 5
+
+
 def _demo(*extra: str) -> dict[str, Any]:
     done = subprocess.run([sys.executable, "-m", "posecast.client.cli", "demo",
-                           "--players", "2", "--spectators", "1", "--seconds", "3",
+                           "--players", "2", "--spectators", "1", "--seconds", str(DEMO_S),
                            "--json", *extra], capture_output=True, text=True, timeout=WAIT,
                           env={**os.environ, "PYTHONWARNINGS": "ignore"})
     assert done.returncode == 0, done.stderr
@@ -33,7 +39,9 @@ def test_demo_over_an_emulated_link_reports_the_display_error_of_each_mode() -> 
         errors = doc["display_error_mm"]
         assert set(errors) == modes
         for e in errors.values():
-            assert e["n"] > 30  # ~1.5 s per avatar at 60 Hz, once the buffers settled
+            # ~3.5 s per avatar at 60 Hz, once the buffers settled
+            assert e["n"] > 30, {k: doc[k] for k in ("network", "display_error_mm",
+                                                     "latency_ms", "frames_sent")}
             assert 0.0 < e["p50"] <= e["p95"]
     # each way 30 to 50 ms: nothing reaches a spectator in less than 60 ms
     assert far["latency_ms"]["capture_to_spectator"]["p50"] >= 60.0
