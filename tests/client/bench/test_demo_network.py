@@ -46,11 +46,14 @@ def test_demo_over_an_emulated_link_reports_the_display_error_of_each_mode() -> 
     # each way 30 to 50 ms: nothing reaches a spectator in less than 60 ms
     assert far["latency_ms"]["capture_to_spectator"]["p50"] >= 60.0
     assert loopback["latency_ms"]["capture_to_spectator"]["p50"] < 60.0
-    # what the spectator shows lags the body further: more error in the modes that
-    # show received poses as they are (the walker moves ~1.3 m/s: 80 ms is ~100 mm)
+    # what the spectator shows lags the body further in the modes that show received
+    # poses as they are: the walker's joints move ~1.3 mm a millisecond (~117 mm at
+    # 91 ms, p50), and nothing arrives in under 60 ms, so at least ~75 mm, where a quiet
+    # loopback shows 9-16 mm. A floor, not loopback's plus 30 mm: that failed once under
+    # the suite's two workers, loopback's interpolate buffer then holding ~100 ms
+    # (130 mm); load only adds to the far run's error
     for mode in (Mode.LATEST.value, Mode.INTERPOLATE.value):
-        assert (far["display_error_mm"][mode]["p50"]
-                > loopback["display_error_mm"][mode]["p50"] + 30.0), mode
+        assert far["display_error_mm"][mode]["p50"] > 60.0, (mode, far["display_error_mm"])
     # the buffer holds frames longer as it measures the link's jitter: +-10 ms each way
     # spreads arrivals over ~40 ms, and a capture interval (11 ms) comes on top (load
     # only adds jitter; tests/client/bench/test_network.py compares a calm and a jittery link)
