@@ -122,6 +122,21 @@ def test_median_of_the_best_resists_one_lopsided_fast_sample() -> None:
     assert est.offset == pytest.approx(TRUE_OFFSET, abs=1e-9)
 
 
+def test_stalled_exchanges_cannot_outvote_one_that_bounds_the_offset_tighter() -> None:
+    """A peer that read its first Pongs 240 ms late (a loaded machine) has two samples
+    130 ms off; one exchange of a 60 ms round trip then bounds the offset within 30 ms,
+    and the estimate moves inside that bound at once, not after the stalled samples
+    leave the best three."""
+    est = ClockEstimator(use_best=3)
+    for t0 in (0.0, 0.02):
+        est.add(*exchange(t0, 0.02, 0.0, 0.28))  # a 300 ms round trip, 260 ms of it down
+    assert est.offset == pytest.approx(TRUE_OFFSET - 0.13, abs=1e-9)  # all it knows
+    est.add(*exchange(1.0, 0.03, 0.0, 0.03))
+    # every sample allows -30 to +20 ms (the stalled ones up to +20); their median,
+    # -130 ms, lies outside: the estimate is the middle of what they allow
+    assert est.offset == pytest.approx(TRUE_OFFSET - 0.005, abs=1e-9)
+
+
 def test_old_samples_age_out_so_the_estimate_follows_a_clock_step() -> None:
     est = ClockEstimator(window=64, use_best=3, max_age=10.0)
     rng = np.random.default_rng(5)
