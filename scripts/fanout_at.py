@@ -16,8 +16,6 @@ clients' core.
 from __future__ import annotations
 
 import argparse
-import asyncio
-import json
 import os
 import re
 import sys
@@ -27,39 +25,10 @@ from collections.abc import Callable
 from multiprocessing.connection import Connection
 
 from posecast.client.bench import fanout as bench
-from posecast.client.measure.latency import LatencyRecorder
 
 STAGES = ("capture_to_server", "server", "network_to_spectator", "capture_to_spectator")
 COUNTERS = ("batches", "writes_merged", "frames_delivered")
 TICKS_PER_S = os.sysconf("SC_CLK_TCK")
-
-
-def _probes_stages(pipe: Connection, url: str, core: int | None) -> None:
-    """The bench's probes (``fanout._probes_process``), answering every stage's summary."""
-    if core is not None:
-        os.sched_setaffinity(0, {core})
-
-    async def main() -> None:
-        probes = [bench._DemoSpectator(url, f"probe {j + 1}") for j in range(bench.PROBES)]
-        stop = asyncio.Event()
-        tasks = [asyncio.create_task(p.run(stop=stop)) for p in probes]
-        async with asyncio.timeout(bench.PROBES_JOIN_S):
-            await asyncio.gather(*(p.in_room.wait() for p in probes))
-            while not all(p.session is not None and p.session.clock.synced for p in probes):
-                await asyncio.sleep(0.05)
-        pipe.send("joined")
-        await bench._readable(pipe)
-        pipe.recv()  # go
-        for p in probes:
-            p.stats.latency = LatencyRecorder()
-        await bench._readable(pipe)
-        pipe.recv()  # stop
-        pipe.send(json.dumps(LatencyRecorder.merged(p.stats.latency for p in probes)
-                             .summary()))
-        stop.set()
-        await asyncio.gather(*tasks, return_exceptions=True)
-
-    asyncio.run(main())
 
 
 def _server_pid(first: int) -> int:
@@ -114,7 +83,7 @@ def _measure(pid: int) -> Measure:
         cpu = (_cpu_ticks(pid) - ticks) / TICKS_PER_S / dt * 1000.0
         after = _counters(urls[0])
         rates = {k: (after[k] - counts[k]) / dt for k in COUNTERS}
-        summary = json.loads(bench._expect(probes[0], "the probes did not answer", 30))
+        summary = bench._expect(probes[0], "the probes did not answer", 30)
         print(f"  server CPU {cpu:.0f} ms/s; a second: " + ", ".join(
             f"{k} {v:,.0f}" for k, v in rates.items()))
         for stage in STAGES:
@@ -135,9 +104,7 @@ def main() -> int:
         print(f"counts must be at least {bench.PROBES} (the probes), players at least 1, "
               "seconds above 0", file=sys.stderr)
         return 2
-    # the bench's steps with this script's probes and measure: the children find
-    # ``_probes_stages`` by name in this module
-    bench._probes_process = _probes_stages
+    # the bench's steps, measured by this script (its probes answer every stage)
     bench._open_files_for_sockets()
     first = min(os.sched_getaffinity(0))  # the server's core (the service pins us off it)
     with bench._service(1, args.players) as service:

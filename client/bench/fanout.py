@@ -169,7 +169,7 @@ def _load_process(pipe: Connection, url: str, count: int, core: int | None) -> N
 def _probes_process(pipe: Connection, url: str, core: int | None) -> None:
     """PROBES real spectators of the server at ``url``, on its core: report when they are
     in the room with synced clocks, measure from "go" to "stop", and send back their
-    merged p99 capture to spectator (ms)."""
+    merged latency summary (every stage's percentiles, ms)."""
     if core is not None:
         os.sched_setaffinity(0, {core})
 
@@ -193,8 +193,7 @@ def _probes_process(pipe: Connection, url: str, core: int | None) -> None:
             p.stats.latency = LatencyRecorder()
         await _readable(pipe)
         pipe.recv()  # stop
-        summary = LatencyRecorder.merged(p.stats.latency for p in probes).summary()
-        pipe.send(summary.get("capture_to_spectator", {}).get("p99", math.inf))
+        pipe.send(LatencyRecorder.merged(p.stats.latency for p in probes).summary())
         stop.set()
         await asyncio.gather(*tasks, return_exceptions=True)
 
@@ -320,7 +319,8 @@ def _measure(urls: list[str], shares: list[int], probes: list[Connection],
     for pipe in probes:
         pipe.send("stop")
     after = _scrape_all(urls)
-    p99 = [float(_expect(pipe, "the probes did not answer", 30)) for pipe in probes]
+    p99 = [float(_expect(pipe, "the probes did not answer", 30)
+                 .get("capture_to_spectator", {}).get("p99", math.inf)) for pipe in probes]
     sent = after[0].get("posecast_frames_received_total", 0.0) - before[0].get(
         "posecast_frames_received_total", 0.0)  # by the players, to the owner
     lost = []
