@@ -15,12 +15,15 @@ from browser_room import chromium_or_skip
 from posecast.client.bench.browser import REPLAY_TOLERANCE_M
 
 WAIT = 300.0  # a subprocess that spawns a server, players, the emulator and Chromium
+# SwiftShader draws the page on the CPU: ~6 fps beside the demo on a quiet machine, ~1 beside
+# another test worker (CI: 9 scored frames in a 6 s demo); 12 s scores ~20 even then
+SECONDS = "12"
 
 
 def test_the_demo_measures_the_browser_pages_display_error_beside_the_desktops() -> None:
     chromium_or_skip()
     done = subprocess.run([sys.executable, "-m", "posecast.client.cli", "demo",
-                           "--players", "2", "--spectators", "1", "--seconds", "6",
+                           "--players", "2", "--spectators", "1", "--seconds", SECONDS,
                            "--network", "40ms+-10ms", "--browser", "predict", "--json"],
                           capture_output=True, text=True, timeout=WAIT,
                           env={**os.environ, "PYTHONWARNINGS": "ignore"})
@@ -33,7 +36,7 @@ def test_the_demo_measures_the_browser_pages_display_error_beside_the_desktops()
     assert errors["browser"]["n"] > 30 and errors["browser"]["p50"] > 0.0
     # at the page's own frames: a few a second at least (SwiftShader draws on the CPU)
     own = page["own_frames"]
-    assert own["n"] >= 10 and own["p50"] > 0.0
+    assert own["n"] >= 10 and own["p50"] > 0.0, page
     # the replay is of what the page did: every root it drew, to rounding
     assert page["replay_checked"] >= own["n"]
     assert page["replay_gap_m"] <= REPLAY_TOLERANCE_M
