@@ -37,7 +37,6 @@ from posecast.protocol.validation import (
     MAX_MESSAGE_BYTES,
     _short_repr,
     checked_pose_wire,
-    checked_poses,
     protocol_error,
     safe_text,
 )
@@ -197,15 +196,14 @@ def encode_tracker_frame(seq: int, roles: Sequence[str], poses: NDArray[Any],
     server's Error.
     """
     poses = np.asarray(poses, dtype=np.float64)
-    checked = np.empty((len(roles), 7))
-    if poses.ndim != 2 or poses.shape != checked.shape or not checked_poses(poses, checked):
-        return encode(TrackerFrame(seq=seq, roles=tuple(roles), poses=poses,  # type: ignore[arg-type]
-                                   t_capture=t_capture, clock_offset=clock_offset))
+    wire = checked_pose_wire(poses) if poses.shape == (len(roles), 7) else None
     try:
         indices = list(role_indices(tuple(roles)))
     except KeyError:  # an unknown role: the message says which
+        wire = None
+    if wire is None:
         return encode(TrackerFrame(seq=seq, roles=tuple(roles), poses=poses,  # type: ignore[arg-type]
                                    t_capture=t_capture, clock_offset=clock_offset))
-    return msgpack.packb({"roles": indices, "poses": checked_pose_wire(checked),
+    return msgpack.packb({"roles": indices, "poses": wire,
                           "t_capture": float(t_capture), "clock_offset": float(clock_offset),
                           "type": "tracker_frame", "seq": int(seq)}, use_bin_type=True)

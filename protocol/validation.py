@@ -242,8 +242,11 @@ def _explain_quaternions(q: NDArray[np.float64], norm2: NDArray[np.float64],
 
 
 @njit(cache=True)
-def _checked_rows(poses: NDArray[np.floating], out: NDArray[np.float64]) -> bool:
-    """``checked_poses``'s work, for any row type (it may write over ``poses``)."""
+def _rows_scale_all(poses: NDArray[np.floating]) -> float:
+    """The check shared by every pose writer: -1.0 if a position is beyond MAX_POSITION_M
+    or a quaternion off unit by more than the tolerance (NaN fails both); else 0.0 when
+    every quaternion is unit to _POSE_UNIT_EXACT (kept as it is), 1.0 when all are to be
+    normalised."""
     worst = 0.0
     for i in range(poses.shape[0]):
         x, y, z = float(poses[i, 0]), float(poses[i, 1]), float(poses[i, 2])
@@ -251,18 +254,37 @@ def _checked_rows(poses: NDArray[np.floating], out: NDArray[np.float64]) -> bool
         qw = float(poses[i, 6])
         deviation = abs(qx * qx + qy * qy + qz * qz + qw * qw - 1.0)
         if not (x * x + y * y + z * z <= _MAX_POSITION2 and deviation <= _NORM2_TOL):
-            return False
+            return -1.0
         worst = max(worst, deviation)
+    return 1.0 if worst > _POSE_UNIT_EXACT else 0.0
+
+
+@njit(cache=True)
+def _quaternion_levels(poses: NDArray[np.floating], i: int, normalise: bool,
+                       levels: NDArray[np.float64]) -> None:
+    """Row i's quaternion as its int16 levels (k of POSE_QUAT_SCALE), into ``levels`` (4)."""
+    scale = 1.0
+    if normalise:
+        scale = math.sqrt(float(poses[i, 3]) ** 2 + float(poses[i, 4]) ** 2
+                          + float(poses[i, 5]) ** 2 + float(poses[i, 6]) ** 2)
+    for k in range(4):
+        level = math.floor(float(poses[i, 3 + k]) / scale * POSE_QUAT_SCALE + 0.5)
+        levels[k] = min(max(level, -POSE_QUAT_SCALE), POSE_QUAT_SCALE)
+
+
+@njit(cache=True)
+def _checked_rows(poses: NDArray[np.floating], out: NDArray[np.float64]) -> bool:
+    """``checked_poses``'s work, for any row type (it may write over ``poses``)."""
+    normalise = _rows_scale_all(poses)
+    if normalise < 0.0:
+        return False
+    levels = np.empty(4)
     for i in range(poses.shape[0]):
-        scale = 1.0
-        if worst > _POSE_UNIT_EXACT:
-            scale = math.sqrt(float(poses[i, 3]) ** 2 + float(poses[i, 4]) ** 2
-                              + float(poses[i, 5]) ** 2 + float(poses[i, 6]) ** 2)
+        _quaternion_levels(poses, i, normalise > 0.0, levels)  # before ``out`` is written
         for k in range(3):
             out[i, k] = np.float32(float(poses[i, k]))
-        for k in range(3, 7):
-            level = math.floor(float(poses[i, k]) / scale * POSE_QUAT_SCALE + 0.5)
-            out[i, k] = min(max(level, -POSE_QUAT_SCALE), POSE_QUAT_SCALE) / POSE_QUAT_SCALE
+        for k in range(4):
+            out[i, 3 + k] = levels[k] / POSE_QUAT_SCALE
     return True
 
 
@@ -299,23 +321,34 @@ def checked_wire_poses(positions: NDArray[np.float32], levels: NDArray[np.int16]
     return _checked_rows(out, out)
 
 
-@njit(types.void(types.float64[:, ::1], types.float32[::1], types.int16[::1]), cache=True)
-def _fill_pose_wire(checked: NDArray[np.float64], positions: NDArray[np.float32],
-                    levels: NDArray[np.int16]) -> None:
-    for i in range(checked.shape[0]):
+@njit([types.boolean(types.Array(types.float64, 2, "A", readonly=True), types.float32[::1],
+                     types.int16[::1])], cache=True)
+def _checked_wire(poses: NDArray[np.float64], positions: NDArray[np.float32],
+                  levels: NDArray[np.int16]) -> bool:
+    """``checked_poses``, written straight as the rows travel: positions (3D,) float32,
+    then quaternion levels (4D,) int16."""
+    normalise = _rows_scale_all(poses)
+    if normalise < 0.0:
+        return False
+    row = np.empty(4)
+    for i in range(poses.shape[0]):
         for k in range(3):
-            positions[3 * i + k] = checked[i, k]
+            positions[3 * i + k] = poses[i, k]
+        _quaternion_levels(poses, i, normalise > 0.0, row)
         for k in range(4):
-            levels[4 * i + k] = round(checked[i, 3 + k] * POSE_QUAT_SCALE)
+            levels[4 * i + k] = int(row[k])
+    return True
 
 
-def checked_pose_wire(checked: NDArray[np.float64]) -> bytes:
-    """``checked_poses``' output as it travels, in one compiled pass: a player's send
-    path (numpy's half-dozen calls cost ~35 us a frame on a slow day, and 16 players'
-    frames spread over more than a burst's window)."""
-    n = checked.shape[0]
+def checked_pose_wire(poses: NDArray[np.float64]) -> bytes | None:
+    """(D, 7) float64 rows, checked and coded as they travel (``checked_poses``' numbers,
+    as ``pose_wire`` lays them out), in one compiled pass; None if ``checked_poses``
+    would refuse them. A player's send path: 16 demo players share one core, and every
+    call there spreads a tick's frames over more of the server's bursts."""
+    n = poses.shape[0]
     out = np.empty(20 * n, dtype=np.uint8)
-    _fill_pose_wire(checked, out[:12 * n].view(np.float32), out[12 * n:].view(np.int16))
+    if not _checked_wire(poses, out[:12 * n].view(np.float32), out[12 * n:].view(np.int16)):
+        return None
     return out.tobytes()
 
 

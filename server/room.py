@@ -35,6 +35,7 @@ from posecast.protocol import (
 )
 from posecast.protocol.arrivals import ArrivalStamps
 from posecast.protocol.codec import encode_avatar_batch
+from posecast.protocol.framing import binary_frame
 from posecast.protocol.messages import TrackerPoses
 from posecast.protocol.pose_coding import Codings, PoseCoding
 from posecast.protocol.roles import DEVICE_ROLES
@@ -45,7 +46,6 @@ from posecast.server.cadence import Cadence
 from posecast.server.clock import now
 from posecast.server.display_error import PoseHistory
 from posecast.server.fanout import FanOut, Spectator
-from posecast.server.framing import binary_frame
 from posecast.server.limits import ServerLimits
 from posecast.server.metrics import Metrics
 from posecast.server.relay import BATCH, ROSTER, AvatarRecord
@@ -88,7 +88,7 @@ class SharedBatch:
 
     def framed(self) -> bytes:
         """The encoded batch as one websocket frame, built once for every spectator that
-        takes it whole (``server.framing``)."""
+        takes it whole (``protocol.framing``)."""
         if self._framed is None:
             self._framed = binary_frame(self.encoded())
         return self._framed

@@ -22,13 +22,13 @@ import struct
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from secrets import token_bytes
 from types import TracebackType
 from typing import Literal
 from urllib.parse import urlsplit
 
 from pydantic import ValidationError
 from websockets.asyncio.client import ClientConnection, connect
-from websockets.asyncio.server import broadcast
 from websockets.exceptions import (
     ConnectionClosed,
     InvalidHandshake,
@@ -61,6 +61,7 @@ from posecast.protocol import (
 )
 from posecast.protocol.arrivals import ArrivalStamps, Data, arrival_time
 from posecast.protocol.codec import decode_stream
+from posecast.protocol.framing import masked_binary_frame
 from posecast.protocol.pose_coding import RosterCodings
 from posecast.protocol.validation import protocol_error, safe_text
 
@@ -368,11 +369,15 @@ class Session:
         goes out the moment its pose is read); False if it was dropped because the
         connection is not open or the server has not read the frames before (over
         SEND_BUFFER_LIMIT unsent bytes: a newer frame is worth more than a queued one)."""
-        transport = self.ws.transport
+        ws = self.ws
+        transport = ws.transport
         if transport is None or transport.get_write_buffer_size() > SEND_BUFFER_LIMIT \
-                or self.ws.protocol.state is not State.OPEN:
+                or ws.protocol.state is not State.OPEN or transport.is_closing() \
+                or ws.send_in_progress is not None:  # never, as no send is fragmented
             return False
-        broadcast([self.ws], data)  # websockets' synchronous write (no await, no lock)
+        # framed here and written at once (no await, no lock): what websockets would
+        # write, without its per-frame objects (``protocol.framing``)
+        transport.write(masked_binary_frame(data, token_bytes(4)))
         return True
 
     def caught_up(self) -> bool:
