@@ -33,7 +33,12 @@ from posecast.protocol import (
 from posecast.server.app import Session
 from posecast.server.clock import now
 from posecast.server.http_routes import Reply, Reused
-from posecast.server.latency import BUCKET_BOUNDS_S, SERVER_STAGES, StageHistograms
+from posecast.server.latency import (
+    BUCKET_BOUNDS_S,
+    SERVER_STAGES,
+    ServerLatency,
+    StageHistograms,
+)
 from posecast.solver.motion import ViveRecording
 from posecast.solver.readers.vive import read_vive
 
@@ -281,9 +286,11 @@ def test_two_servers_in_one_process_show_their_own_figures(rig_session: Session,
     asyncio.run(main())
 
 
-def test_histogram_buckets_are_inclusive_upper_bounds() -> None:
-    """Prometheus' "le": a value on a bound counts in that bound's bucket."""
-    h = StageHistograms(("a", "b"), bounds=(0.001, 0.01))
+@pytest.mark.parametrize("pending", [0, 1, 3, 4])
+def test_histogram_buckets_are_inclusive_upper_bounds(pending: int) -> None:
+    """Prometheus' "le": a value on a bound counts in that bound's bucket (held first or
+    not: a batch larger than the buffer, one that fills it, one that overflows it)."""
+    h = StageHistograms(("a", "b"), bounds=(0.001, 0.01), pending=pending)
     h.observe(np.array([[0.001, 0.0010001, 0.5, -0.002],
                         [0.0, 0.01, 0.01, 0.01]]))
     h.observe(np.array([[0.009], [2.0]]))
@@ -292,6 +299,21 @@ def test_histogram_buckets_are_inclusive_upper_bounds() -> None:
     assert buckets == [("0.001", 2.0), ("0.01", 4.0), ("+Inf", 5.0)]
     assert total == pytest.approx(0.001 + 0.0010001 + 0.5 - 0.002 + 0.009)
     assert h.count("b") == 5 and h.cumulative("b")[1] == pytest.approx(2.03)
+
+
+def test_the_servers_held_values_are_counted_when_read_or_when_the_buffer_fills() -> None:
+    rng = np.random.default_rng(8)
+    held, direct = ServerLatency(), StageHistograms(SERVER_STAGES)
+    for n in rng.integers(1, 40, 3000):  # ~60,000 frames: the buffer fills a few times
+        captured = rng.uniform(0.0, 1.0, n)
+        received = captured + rng.exponential(0.001, n)
+        solved, sent = received.max() + 0.0004, received.max() + 0.0006
+        held.batch(captured, received, solved, sent)
+        direct.observe(np.stack([received - captured, solved - received, sent - received]))
+        if n == 7:  # a scrape between batches
+            assert held.counts.tolist() == direct.counts.tolist()
+    assert held.counts.tolist() == direct.counts.tolist()
+    np.testing.assert_allclose(held.sums, direct.sums, rtol=1e-12)
 
 
 def test_metrics_page_is_made_at_most_once_per_max_age() -> None:
