@@ -6,8 +6,8 @@ from __future__ import annotations
 import secrets
 
 import pytest
-from websockets.frames import Frame, Opcode
 from websockets.client import ClientProtocol
+from websockets.frames import Frame, Opcode
 from websockets.protocol import OPEN
 from websockets.server import ServerProtocol
 from websockets.uri import parse_uri
