@@ -133,9 +133,11 @@ class RelayedBatch(SharedBatch):
 
 Delivery = tuple[SharedBatch, int]  # a batch and the index of one avatar in it
 
-# the longest a burst may keep a batch open: long enough that 16 players' frames (spread
-# over ~0.6 ms on loopback) make one batch, one message per spectator; short enough that
-# a large room's first frames do not wait long (docs/performance.md, "Bursts")
+# the longest a burst may keep a batch open: long enough that most of a tick's frames
+# make one batch, one message per spectator; short enough that a large room's first
+# frames do not wait long. The demo's 16 players on one core spread a tick's frames over
+# ~1.6 ms (1.8-1.9 batches a tick); a 1.6 ms window made one batch a tick but raised the
+# server's p99 from ~1.6 to 2.1-2.4 ms (docs/performance.md, "Bursts", "eighth stop")
 COALESCE_MAX_S = 0.0007
 
 
