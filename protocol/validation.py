@@ -241,12 +241,15 @@ def _explain_quaternions(q: NDArray[np.float64], norm2: NDArray[np.float64],
                      f"within {QUAT_NORM_TOLERANCE:g} is required")
 
 
+_REFUSED, _AS_THEY_ARE, _NORMALISED = -1, 0, 1  # what _rows_check finds
+
+
 @njit(cache=True)
-def _rows_scale_all(poses: NDArray[np.floating]) -> float:
-    """The check shared by every pose writer: -1.0 if a position is beyond MAX_POSITION_M
-    or a quaternion off unit by more than the tolerance (NaN fails both); else 0.0 when
-    every quaternion is unit to _POSE_UNIT_EXACT (kept as it is), 1.0 when all are to be
-    normalised."""
+def _rows_check(poses: NDArray[np.floating]) -> int:
+    """The check shared by every pose writer: _REFUSED if a position is beyond
+    MAX_POSITION_M or a quaternion off unit by more than the tolerance (NaN fails both);
+    _AS_THEY_ARE when every quaternion is unit to _POSE_UNIT_EXACT, else _NORMALISED
+    (all rows, so that one frame's rows are coded alike)."""
     worst = 0.0
     for i in range(poses.shape[0]):
         x, y, z = float(poses[i, 0]), float(poses[i, 1]), float(poses[i, 2])
@@ -254,37 +257,40 @@ def _rows_scale_all(poses: NDArray[np.floating]) -> float:
         qw = float(poses[i, 6])
         deviation = abs(qx * qx + qy * qy + qz * qz + qw * qw - 1.0)
         if not (x * x + y * y + z * z <= _MAX_POSITION2 and deviation <= _NORM2_TOL):
-            return -1.0
+            return _REFUSED
         worst = max(worst, deviation)
-    return 1.0 if worst > _POSE_UNIT_EXACT else 0.0
+    return _NORMALISED if worst > _POSE_UNIT_EXACT else _AS_THEY_ARE
 
 
 @njit(cache=True)
-def _quaternion_levels(poses: NDArray[np.floating], i: int, normalise: bool,
-                       levels: NDArray[np.float64]) -> None:
-    """Row i's quaternion as its int16 levels (k of POSE_QUAT_SCALE), into ``levels`` (4)."""
-    scale = 1.0
-    if normalise:
-        scale = math.sqrt(float(poses[i, 3]) ** 2 + float(poses[i, 4]) ** 2
-                          + float(poses[i, 5]) ** 2 + float(poses[i, 6]) ** 2)
-    for k in range(4):
-        level = math.floor(float(poses[i, 3 + k]) / scale * POSE_QUAT_SCALE + 0.5)
-        levels[k] = min(max(level, -POSE_QUAT_SCALE), POSE_QUAT_SCALE)
+def _quaternion_scale(poses: NDArray[np.floating], i: int, found: int) -> float:
+    """What row i's quaternion is divided by before it is coded (``_rows_check``)."""
+    if found != _NORMALISED:
+        return 1.0
+    return math.sqrt(float(poses[i, 3]) ** 2 + float(poses[i, 4]) ** 2
+                     + float(poses[i, 5]) ** 2 + float(poses[i, 6]) ** 2)
+
+
+@njit(cache=True)
+def _quaternion_level(component: float, scale: float) -> float:
+    """A quaternion component as its int16 level (k of POSE_QUAT_SCALE), rounded."""
+    level = math.floor(component / scale * POSE_QUAT_SCALE + 0.5)
+    return min(max(level, -POSE_QUAT_SCALE), POSE_QUAT_SCALE)
 
 
 @njit(cache=True)
 def _checked_rows(poses: NDArray[np.floating], out: NDArray[np.float64]) -> bool:
-    """``checked_poses``'s work, for any row type (it may write over ``poses``)."""
-    normalise = _rows_scale_all(poses)
-    if normalise < 0.0:
+    """``checked_poses``'s work, for any row type (it may write over ``poses``: a row's
+    scale is taken before the row is written, each value read before its own write)."""
+    found = _rows_check(poses)
+    if found == _REFUSED:
         return False
-    levels = np.empty(4)
     for i in range(poses.shape[0]):
-        _quaternion_levels(poses, i, normalise > 0.0, levels)  # before ``out`` is written
+        scale = _quaternion_scale(poses, i, found)
         for k in range(3):
             out[i, k] = np.float32(float(poses[i, k]))
-        for k in range(4):
-            out[i, 3 + k] = levels[k] / POSE_QUAT_SCALE
+        for k in range(3, 7):
+            out[i, k] = _quaternion_level(float(poses[i, k]), scale) / POSE_QUAT_SCALE
     return True
 
 
@@ -327,16 +333,15 @@ def _checked_wire(poses: NDArray[np.float64], positions: NDArray[np.float32],
                   levels: NDArray[np.int16]) -> bool:
     """``checked_poses``, written straight as the rows travel: positions (3D,) float32,
     then quaternion levels (4D,) int16."""
-    normalise = _rows_scale_all(poses)
-    if normalise < 0.0:
+    found = _rows_check(poses)
+    if found == _REFUSED:
         return False
-    row = np.empty(4)
     for i in range(poses.shape[0]):
+        scale = _quaternion_scale(poses, i, found)
         for k in range(3):
             positions[3 * i + k] = poses[i, k]
-        _quaternion_levels(poses, i, normalise > 0.0, row)
         for k in range(4):
-            levels[4 * i + k] = int(row[k])
+            levels[4 * i + k] = int(_quaternion_level(float(poses[i, 3 + k]), scale))
     return True
 
 

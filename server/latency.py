@@ -114,10 +114,14 @@ class ServerLatency(StageHistograms):
         """One solved batch: each frame's capture and arrival times, the batch's solve
         and send times (all on the server's clock). Held, and counted later: three
         subtractions into the buffer."""
-        values = self._reserve(t_received.shape[0])
+        n = t_received.shape[0]
+        held = n <= self._pending.shape[1]  # a batch is at most MAX_AVATARS, far fewer
+        values = self._reserve(n) if held else np.empty((3, n), dtype=np.float64)
         np.subtract(t_received, t_capture, out=values[0])
         np.subtract(t_solved, t_received, out=values[1])
         np.subtract(t_sent, t_received, out=values[2])
+        if not held:
+            self._count(values)
 
 
 class ViewerLatency(StageHistograms):

@@ -137,7 +137,7 @@ class BvhSource:
     @property
     def num_frames(self) -> int:
         """Motion frames (a file's bind-pose frame excluded)."""
-        return int(self.poses.shape[0])
+        return self._frames
 
     def calibration(self) -> DeviceSample:
         return DeviceSample.of(now(), self.roles, self.tpose_positions, self.tpose_rotations)

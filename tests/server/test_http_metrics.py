@@ -35,6 +35,7 @@ from posecast.server.clock import now
 from posecast.server.http_routes import Reply, Reused
 from posecast.server.latency import (
     BUCKET_BOUNDS_S,
+    SERVER_PENDING,
     SERVER_STAGES,
     ServerLatency,
     StageHistograms,
@@ -304,7 +305,8 @@ def test_histogram_buckets_are_inclusive_upper_bounds(pending: int) -> None:
 def test_the_servers_held_values_are_counted_when_read_or_when_the_buffer_fills() -> None:
     rng = np.random.default_rng(8)
     held, direct = ServerLatency(), StageHistograms(SERVER_STAGES)
-    for n in rng.integers(1, 40, 3000):  # ~60,000 frames: the buffer fills a few times
+    # ~60,000 frames: the buffer fills a few times; then one batch larger than it
+    for n in [*rng.integers(1, 40, 3000).tolist(), SERVER_PENDING + 3616]:
         captured = rng.uniform(0.0, 1.0, n)
         received = captured + rng.exponential(0.001, n)
         solved, sent = received.max() + 0.0004, received.max() + 0.0006
