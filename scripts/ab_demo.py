@@ -71,7 +71,10 @@ def _parts(prefix: Path) -> dict[str, float]:
     if not files:
         raise SystemExit(f"ab_demo --parts: no server wrote {prefix}.*.f64 (was the hook "
                          f"loaded? {PARTS_HOOK})")
-    rows = np.fromfile(files[-1]).reshape(-1, 6)
+    data = files[-1].read_bytes()  # whole rows only: the server may end mid-row (os._exit)
+    rows = np.frombuffer(data[:len(data) // 48 * 48]).reshape(-1, 6)
+    if len(rows) == 0:
+        raise SystemExit(f"ab_demo --parts: {files[-1]} holds no whole batch")
     rows = rows[rows[:, 0] >= rows[0, 0] + SETTLE_S]
     arrival, _, start, end, sent, size = rows.T
     wait = (start - arrival) * 1e3
