@@ -3,9 +3,10 @@
 tree, so that neither tree's code changes for the measurement. Only with
 POSECAST_AB_PARTS set (a file prefix); only in the process that imports the room module.
 
-For each batch it appends one row per frame, as float64: the frame's arrival, when the
-room began the batch (its solve call), when the solve started and ended, when the batch
-was first encoded (its t_sent) and the batch's size, to PREFIX.<pid>.f64. It wraps three
+For each batch it appends one row per frame pending when the room began it, as float64:
+the frame's arrival, when the room began the batch (its solve call), when the solve
+started and ended, when the batch was first encoded (its t_sent) and the count of those
+frames, to PREFIX.<pid>.f64. It wraps three
 methods both trees have (Room._solve_and_deliver, AvatarSolver.solve_staged,
 SharedBatch.encoded): each adds a few microseconds to a batch, on both sides alike.
 """
@@ -26,25 +27,26 @@ FLUSH_EVERY = 200  # batches: an embedded server ends with os._exit, buffers and
 
 
 def _instrument(room: ModuleType, prefix: str) -> None:
+    import numpy as np  # loaded by the room module already; not at every start-up
+
     package = room.__name__.rsplit(".", 1)[0]
     now = sys.modules[f"{package}.clock"].now
     solver_class = sys.modules[f"{package}.avatars"].AvatarSolver
     out = open(f"{prefix}.{os.getpid()}.f64", "ab")  # noqa: SIM115 (open for the process)
     batch: dict[str, Any] = {}
-    count = [0]
+    batches = 0
 
     solve_and_deliver = room.Room._solve_and_deliver
     solve_staged = solver_class.solve_staged
     encoded = room.SharedBatch.encoded
 
     def timed_solve_and_deliver(self: Any) -> None:
+        nonlocal batches
         batch.clear()
         batch["began"] = now()
         arrivals = [t for _, t in self._pending.values()]
         solve_and_deliver(self)
         if "solve_start" in batch and "sent" in batch:
-            import numpy as np
-
             n = len(arrivals)
             rows = np.empty((n, 6))
             rows[:, 0] = arrivals
@@ -52,8 +54,8 @@ def _instrument(room: ModuleType, prefix: str) -> None:
                             batch["sent"])
             rows[:, 5] = n
             out.write(rows.tobytes())
-            count[0] += 1
-            if count[0] % FLUSH_EVERY == 0:
+            batches += 1
+            if batches % FLUSH_EVERY == 0:
                 out.flush()
 
     def timed_solve_staged(self: Any, avatar_ids: Sequence[int]) -> Any:
