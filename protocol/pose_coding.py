@@ -491,16 +491,27 @@ def pack_batch(avatar_ids: Sequence[int], rotations: Sequence[Array] | Array,
         return quantize_rotations(rotations.reshape(-1, 4))
     if codings and isinstance(rotations, np.ndarray) and rotations.ndim == 3 \
             and avatar_ids:
-        kinds = {id(_structure(c)) if (c := codings.get(a)) is not None else None
-                 for a in avatar_ids}
         first = codings.get(avatar_ids[0])
-        if len(kinds) == 1 and first is not None:
+        if first is not None and _one_kind(first, avatar_ids, codings):
             return first.pack(rotations)
     parts = []
     for avatar_id, rows in zip(avatar_ids, rotations, strict=True):
         coding = codings.get(avatar_id) if codings is not None else None
         parts.append(quantize_rotations(rows) if coding is None else coding.pack(rows[None]))
     return b"".join(parts)
+
+
+def _one_kind(first: PoseCoding, avatar_ids: Sequence[int], codings: Codings) -> bool:
+    """Whether every avatar's coding packs as ``first`` does (``_structure``): a room's
+    batches, once per batch on the server's path, so a structure found before is not
+    looked up again."""
+    kind = _structure(first)
+    for avatar_id in avatar_ids:
+        c = codings.get(avatar_id)
+        if c is not first and (c is None or (
+                c.__dict__.get("_structure") or _structure(c)) is not kind):
+            return False
+    return True
 
 
 # the content of each RosterCodings.decoding_key given out, and the next key (never one

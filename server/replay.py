@@ -98,7 +98,8 @@ class ReplayedAvatars:
                                  np.array([f.root for f in frames]),
                                  np.array([f.rotations for f in frames]),
                                  [t_received] * len(chosen), [t_received] * len(chosen),
-                                 t_solved, codings=self.room.codings(room_ids))
+                                 t_solved, codings=self.room.codings(room_ids),
+                                 rows_checked=True)
             self.metrics.frames_replayed += len(chosen)
             self.room.deliver(shared)
 

@@ -63,9 +63,13 @@ class SharedBatch:
     def __init__(self, avatar_ids: list[int], seqs: list[int], roots: np.ndarray,
                  rotations: np.ndarray, t_capture: list[float],
                  t_server_receive: list[float], t_solved: float,
-                 lost: list[int] | None = None, codings: Codings | None = None) -> None:
+                 lost: list[int] | None = None, codings: Codings | None = None,
+                 rows_checked: bool = False) -> None:
         self.args = (avatar_ids, seqs, roots, rotations, t_capture, t_server_receive,
                      t_solved)
+        # every row passed the spectators' own checks (validation.sendable_rows): the
+        # encoder need not look for non-finite values again
+        self.rows_checked = rows_checked
         self.lost = lost if lost is not None else [0] * len(avatar_ids)
         # how each avatar's rotations are packed: its roster's coding (Room.codings)
         self.codings: Codings = codings if codings is not None else {}
@@ -83,7 +87,8 @@ class SharedBatch:
         if self._encoded is None:  # t_sent: now, as the bytes go to the sockets
             self.t_sent = now()
             self._encoded = encode_avatar_batch(*self.args, t_sent=self.t_sent,
-                                                lost=self.lost, codings=self.codings)
+                                                lost=self.lost, codings=self.codings,
+                                                rows_checked=self.rows_checked)
         return self._encoded
 
     def framed(self) -> bytes:
@@ -114,6 +119,7 @@ class RelayedBatch(SharedBatch):
         self.args = (batch.avatar_ids.tolist(),)  # type: ignore[assignment]
         self.lost = batch.lost.tolist()
         self.codings = codings
+        self.rows_checked = True  # decoded: every row passed the checks
         self.size = batch.size
         self._encoded = data
         self._framed = None
@@ -394,7 +400,8 @@ class Room:
         avatars = self.avatars
         lost = [avatars[a].lost_bits if a in avatars else 0 for a in ids]
         shared = SharedBatch(ids, [f.seq for _, f, _ in pending], roots, rotations,
-                             t_capture, t_received, t_solved, lost, self.codings(ids))
+                             t_capture, t_received, t_solved, lost, self.codings(ids),
+                             rows_checked=True)
         self.metrics.frames_solved += len(pending)
         self.metrics.batches += 1
         self.deliver(shared)
