@@ -22,7 +22,10 @@ import time
 import numpy as np
 
 from posecast.protocol.codec import decode_tracker_poses, encode_avatar_batch
+from posecast.protocol.framing import binary_frame
 from posecast.protocol.messages import TrackerPoses
+from posecast.protocol.pose_coding import PoseCoding
+from posecast.protocol.validation import sendable_rows
 from posecast.server.avatars import AvatarSolver
 from posecast.solver.ik import PoseBatch
 from posecast.solver.rig import Rig
@@ -63,9 +66,11 @@ class WarmPath:
         self.solver = AvatarSolver(rig, solver, capacity=1)
         self.frame: bytes | bytearray | memoryview | None = None  # the latest one seen
         self.steps = 0  # whole frames run
+        self.sent: bytes | None = None  # the twin's last batch, as a spectator gets it
         self._phase = 0
         self._msg: TrackerPoses | None = None
         self._solved: PoseBatch | None = None
+        self._codings: dict[int, PoseCoding | None] = {}
 
     @property
     def calibrated(self) -> bool:
@@ -74,6 +79,7 @@ class WarmPath:
     def calibrate(self, roles: tuple[str, ...], poses: np.ndarray) -> None:
         if not self.calibrated:  # one body is enough: it only has to run the code
             self.solver.calibrate(TWIN, roles, poses[:, :3], poses[:, 3:])
+            self._codings = {TWIN: self.solver.coding(TWIN)}
 
     def step(self) -> None:
         """A third of one frame's path on the twin, in turn: decode and stage, solve,
@@ -90,12 +96,17 @@ class WarmPath:
             self._msg = msg
         elif self._phase == 1:
             self._solved = self.solver.solve_staged([TWIN])
-        else:
+        else:  # what a room does from the solve to the first write (Room._solve_and_deliver)
             frame, solved = self._msg, self._solved
             assert frame is not None and solved is not None
             t = frame.t_capture_server
-            encode_avatar_batch([TWIN], [frame.seq], solved.root, solved.rotations, [t],
-                                [t], t, t_sent=t)
+            times, keep = np.array([t]), np.empty(1, dtype=np.bool_)
+            if not sendable_rows(solved.root, solved.rotations, times, times, t, keep):
+                # packed with the twin's coding, as a room packs its avatars': warming
+                # another encoder left the real one cold at every batch
+                self.sent = binary_frame(encode_avatar_batch(
+                    [TWIN], [frame.seq], solved.root, solved.rotations, [t], [t], t,
+                    t_sent=t, lost=[0], codings=self._codings, rows_checked=True))
             self.steps += 1
         self._phase = (self._phase + 1) % 3
 

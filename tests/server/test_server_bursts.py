@@ -9,9 +9,12 @@ import numpy as np
 import pytest
 
 from posecast.protocol import Calibrate, TrackerFrame, decode_client, encode
+from posecast.protocol.batch import AvatarBatch
+from posecast.protocol.codec import decode
+from posecast.protocol.errors import ProtocolError
 from posecast.server.app import Session
 from posecast.server.avatars import AvatarSolver
-from posecast.server.busy import OpenBursts, WarmPath
+from posecast.server.busy import TWIN, OpenBursts, WarmPath
 from posecast.server.cadence import MAX_PERIOD_S, Cadence
 from posecast.server.metrics import Metrics
 from posecast.server.outbox import Outbox
@@ -210,3 +213,16 @@ def test_warm_path_runs_a_frame_in_three_short_phases(session: Session,
         assert warm._phase == phase
     assert warm.steps == 1
     assert not np.array_equal(warm.solver._rotations[0], before)  # it did solve the twin
+    # and sent it as a room sends its avatars: packed with the twin's coding (the code a
+    # real batch runs, kept warm), a batch a spectator decodes with that coding
+    coding = warm.solver.coding(TWIN)
+    assert warm.sent is not None and warm.sent[:2] == b"\x82\x7e"  # binary, 16-bit length
+    payload = warm.sent[4:]
+    assert int.from_bytes(warm.sent[2:4], "big") == len(payload)
+    sent = decode(payload, codings={TWIN: coding})
+    assert isinstance(sent, AvatarBatch) and sent.avatar_ids.tolist() == [TWIN]
+    driven = list(coding.driven)
+    assert np.abs(np.abs(np.sum(sent.frame(0).rotations[driven]
+                                * warm.solver._rotations[0][driven], axis=1)) - 1).max() < 1e-5
+    with pytest.raises(ProtocolError):  # not the 5 bytes a joint of an uncoded avatar
+        decode(payload)
