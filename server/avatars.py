@@ -65,9 +65,11 @@ class AvatarSolver:
     whatever devices each frame has (``solver.tracking``)."""
 
     def __init__(self, rig: Rig, solver: str = "analytic", capacity: int = 8,
-                 helper_cores: tuple[int, ...] = ()) -> None:
+                 helper_cores: tuple[int, ...] = (), shared: bool = False) -> None:
         """``helper_cores``: solve each batch with a helper thread spinning there
-        (``server.helper``; the analytic solver only)."""
+        (``server.helper``; the analytic solver only). ``shared``: solve through the
+        helper's compiled code even with no thread (the server's warm path: a twin
+        solved by other code would leave the rooms' solve cold)."""
         self.rig = rig
         self.solver = Solver(rig, solver)
         self.calibrations: dict[int, Calibration] = {}
@@ -80,6 +82,7 @@ class AvatarSolver:
         self._offsets = np.empty((capacity, J, 3))  # each avatar's bone lengths
         self._iterations = np.zeros(capacity, dtype=np.int64)
         self.helper_cores = helper_cores if solver == "analytic" else ()
+        self._shared = shared and solver == "analytic"
         self._helper: SolveHelper | None = None
 
     def warm_up(self) -> None:
@@ -183,7 +186,7 @@ class AvatarSolver:
 
     def helper(self) -> SolveHelper | None:
         """The helper thread over the current arrays (started on first use), if any."""
-        if self._helper is None and self.helper_cores:
+        if self._helper is None and (self.helper_cores or self._shared):
             self._helper = SolveHelper(self.helper_cores, self._analytic_args(),
                                        len(self._roots), self.rig.skeleton.num_joints)
         return self._helper

@@ -63,7 +63,8 @@ class WarmPath:
     else."""
 
     def __init__(self, rig: Rig, solver: str) -> None:
-        self.solver = AvatarSolver(rig, solver, capacity=1)
+        # solved by the compiled code the rooms' solves run (their helper's), no thread
+        self.solver = AvatarSolver(rig, solver, capacity=1, shared=True)
         self.frame: bytes | bytearray | memoryview | None = None  # the latest one seen
         self.steps = 0  # whole frames run
         self.sent: bytes | None = None  # the twin's last batch, as a spectator gets it

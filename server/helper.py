@@ -42,7 +42,9 @@ class SolveHelper:
 
     def __init__(self, cores: tuple[int, ...], args: tuple[object, ...], capacity: int,
                  joints: int) -> None:
-        """``args``: the solver's arguments over the whole arrays (``Solver.analytic_args``)."""
+        """``args``: the solver's arguments over the whole arrays (``Solver.analytic_args``).
+        No ``cores``: no thread, the caller solves every avatar, through the same
+        compiled code (the server's warm path keeps that code in the caches)."""
         self.cores = cores
         self.control = new_control()
         self.rows: NDArray[np.int64] = np.zeros(capacity, dtype=np.int64)
@@ -51,6 +53,9 @@ class SolveHelper:
                      np.empty((capacity, 3)), np.zeros(capacity, dtype=np.int64))
         self._args = args
         self.handed = 0  # avatars the helper solved, once it has stopped
+        self._thread: threading.Thread | None = None
+        if not cores:
+            return
         # compiled (or loaded) here, not in the thread: that holds the GIL for a while,
         # and the thread would hold it while the server runs
         stopped = new_control()
@@ -81,6 +86,8 @@ class SolveHelper:
         """End the thread; ``wait=False`` does not wait for it to return (it needs the
         GIL and a turn of its core for that, ~10 ms with the clients busy there; it takes
         no batch meanwhile, having no more posted to it)."""
+        if self._thread is None:
+            return
         # back to a normal thread first: it needs the GIL, and a core, to return
         with contextlib.suppress(AttributeError, OSError):
             os.sched_setscheduler(self._tid, os.SCHED_OTHER, os.sched_param(0))

@@ -213,6 +213,7 @@ def test_warm_path_runs_a_frame_in_three_short_phases(session: Session,
         assert warm._phase == phase
     assert warm.steps == 1
     assert not np.array_equal(warm.solver._rotations[0], before)  # it did solve the twin
+    assert warm.solver.helper() is not None  # through the code the rooms' solves run
     # and sent it as a room sends its avatars: packed with the twin's coding (the code a
     # real batch runs, kept warm), a batch a spectator decodes with that coding
     coding = warm.solver.coding(TWIN)

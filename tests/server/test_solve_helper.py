@@ -77,6 +77,31 @@ def test_a_helper_gives_the_same_poses_and_takes_part(session: Session,
         assert handed > 0
 
 
+def test_the_shared_code_without_a_thread_gives_the_same_poses(
+        session: Session, recording: ViveRecording) -> None:
+    """The warm path's twin (``server.busy``) solves through the helper's compiled code
+    with no helper thread: it solves every avatar itself, the poses of a plain solve."""
+    threads = threading.active_count()
+    shared, plain = AvatarSolver(session.rig, shared=True), AvatarSolver(session.rig)
+    for solver in (shared, plain):
+        for a in range(N):
+            solver.calibrate(a, recording.devices, recording.positions[0],
+                             recording.rotations[0])
+    for f in range(1, 30):
+        for solver in (shared, plain):
+            for a in range(N):
+                solver.stage(a, recording.devices, poses(recording, f + 25 * a))
+        order = [5, 0, 7, 2, 1, 6, 3, 4] if f % 2 else [3]
+        s, p = shared.solve_staged(order), plain.solve_staged(order)
+        np.testing.assert_array_equal(s.rotations, p.rotations)
+        np.testing.assert_array_equal(s.root, p.root)
+        np.testing.assert_array_equal(s.iterations, p.iterations)
+    helper = shared.helper()
+    assert helper is not None and helper.handed == 0  # the shared path, all its own
+    assert threading.active_count() == threads  # and no thread started for it
+    shared.close()
+
+
 @njit(nogil=True)
 def _take_one_and_vanish(control: np.ndarray) -> int:
     """A helper that claims an avatar of the next batch and never finishes it."""
