@@ -4,9 +4,12 @@ An idle server blocks in the kernel until the next burst of tracker frames; on a
 core then halts and other work evicts the server's code and data from the caches, so
 every burst runs cold, at about twice its back-to-back cost. With busy polling the event
 loop never blocks. Between bursts it re-runs the path of the latest tracker frame on a
-twin avatar (decode, stage, solve, encode; a third of it at a time, every
-WARM_PHASE_INTERVAL_S, so that a frame that arrives waits ~30 us at most), which keeps
-that path in the caches; reads are taken without a wake-up. While a burst is open it
+twin avatar (decode, stage, solve, check and encode; a third of it at a time, every
+WARM_PHASE_INTERVAL_S, so that a frame that arrives waits one phase at most, 25-100 us),
+which keeps that path in the caches; reads are taken without a wake-up. It must be the
+rooms' own code: the twin is solved by their compiled solve and packed with a coding as
+their avatars are (a twin run through other code left theirs cold: the server's p99 10%
+higher, docs/performance.md). While a burst is open it
 waits like an idle server: the burst's own passes of the loop decide when it ends
 (``server.room``).
 
