@@ -502,14 +502,12 @@ def pack_batch(avatar_ids: Sequence[int], rotations: Sequence[Array] | Array,
 
 
 def _one_kind(first: PoseCoding, avatar_ids: Sequence[int], codings: Codings) -> bool:
-    """Whether every avatar's coding packs as ``first`` does (``_structure``): a room's
-    batches, once per batch on the server's path, so a structure found before is not
-    looked up again."""
+    """Whether every avatar's coding packs as ``first`` does (``_structure``), stopping
+    at the first that does not."""
     kind = _structure(first)
     for avatar_id in avatar_ids:
         c = codings.get(avatar_id)
-        if c is not first and (c is None or (
-                c.__dict__.get("_structure") or _structure(c)) is not kind):
+        if c is None or _structure(c) is not kind:
             return False
     return True
 
