@@ -38,6 +38,7 @@ from websockets.exceptions import (
 )
 from websockets.protocol import State
 
+from posecast.client.session import reads_first
 from posecast.client.session.tls import CAFileError, client_tls_context, tls_failure
 from posecast.client.sources.base import now
 from posecast.protocol import (
@@ -446,8 +447,8 @@ class Session:
                 on_error: Callable[[ProtocolError], None]) -> None:
         """Hand each binary message over as the loop reads it, not through ``receive``.
 
-        It is stamped when read, decoded once the loop's pass has read (and stamped)
-        whatever else came, and given to ``on_message`` with its arrival time (Pongs go
+        It is stamped when read, decoded once the loop has read (and stamped) whatever
+        else came (``reads_first``), and given to ``on_message`` with its arrival time (Pongs go
         to the clock; bytes that do not decode, to ``on_error``). websockets' queue and
         a reading task's turn per message were a sixth of the demo's spectators' time.
         A task must still await ``receive``: it takes what came before this call (and
@@ -457,15 +458,16 @@ class Session:
         self.ws.fast_path = self._arrived  # type: ignore[attr-defined]
 
     def _arrived(self, data: Data, t: float) -> bool:
-        if not self._read:
-            asyncio.get_running_loop().call_soon(self.hand_over)
+        # decoded once the loop's reads settle (``reads_first``), not between them
+        reads_first.of(asyncio.get_running_loop()).read(
+            None if self._read else self.hand_over)
         self._read.append((data, t))
         return True
 
     def hand_over(self) -> None:
         """Decode the messages read so far and give them to ``deliver``'s handlers
-        (the loop calls it after a pass that read some; call it at the end of a session
-        to take the last ones)."""
+        (``reads_first`` calls it once the loop's reads settle; call it at the end of a
+        session to take the last ones)."""
         read, self._read = self._read, []
         if self._handlers is None or self._failed is not None:
             return
