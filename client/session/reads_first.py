@@ -55,7 +55,11 @@ class ReadsFirst:
             return
         waiting, self._waiting = self._waiting, []
         for decode in waiting:
-            decode()
+            try:
+                decode()
+            except Exception as exc:  # one connection's bug: the others still decode
+                self._loop.call_exception_handler({
+                    "message": "a connection's decoding failed", "exception": exc})
 
 
 _LOOPS: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, ReadsFirst] = (

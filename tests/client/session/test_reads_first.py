@@ -82,3 +82,26 @@ def test_reads_that_never_pause_do_not_starve_the_decode() -> None:
     decoded_at, reads_in_all, _ = asyncio.run(main())
     # decoded while the stream went on: after more reads than the first, before its end
     assert 1 < decoded_at < reads_in_all
+
+
+def test_a_decoder_that_raises_leaves_the_others_theirs() -> None:
+    async def main() -> tuple[list[str], list[object]]:
+        loop = asyncio.get_running_loop()
+        reported: list[object] = []
+        loop.set_exception_handler(lambda _, context: reported.append(context["exception"]))
+        reads = ReadsFirst(loop)
+        decoded: list[str] = []
+
+        def broken() -> None:
+            raise RuntimeError("a bug")
+
+        reads.read(broken)
+        reads.read(lambda: decoded.append("b"))
+        await _passes(4)
+        reads.read(lambda: decoded.append("c"))  # and the next reads are decoded too
+        await _passes(4)
+        return decoded, reported
+
+    decoded, reported = asyncio.run(main())
+    assert decoded == ["b", "c"]
+    assert len(reported) == 1 and isinstance(reported[0], RuntimeError)
