@@ -182,9 +182,6 @@ class AvatarSolver:
                     role, row[:3], row[3:]))
             self._has_bits[avatar_id] = role_bits(self.devices(avatar_id))
             self.tracking.stage(slot, slots, poses, t)
-        # its targets now, not in the batch's solve: a room stages each frame while the
-        # rest of its burst is still coming, so the burst's solve waits for none of them
-        self.tracking.fill_one(slot)
         return self._has_bits[avatar_id] & ~_present_bits(roles), new
 
     def helper(self) -> SolveHelper | None:
@@ -210,7 +207,9 @@ class AvatarSolver:
         pose; their new poses in the order asked (new arrays: the next solve does not
         change them)."""
         slot_list = [self._slot[a] for a in avatar_ids]
-        t = self.tracking  # (their targets were filled as they were staged)
+        t = self.tracking
+        if slot_list:
+            t.fill(np.array(slot_list, dtype=np.intp))
         helper = self.helper() if slot_list else None
         if helper is not None:  # in place, wherever the rows are, with the helper
             n = len(slot_list)

@@ -302,13 +302,6 @@ def fill_targets(dev, present, has, t, shape, state, targets, weights):
 
 
 @njit(cache=True)
-def fill_row(r, dev, present, has, t, shape, state, targets, weights):
-    """``fill_targets`` for the avatar at row ``r`` of the arrays."""
-    fill_targets(dev[r], present[r], has[r], t[r], shape[r], state[r], targets[r],
-                 weights[r])
-
-
-@njit(cache=True)
 def fill_batch(rows, dev, present, has, t, shape, state, targets, weights):
     """``fill_targets`` for the avatars at ``rows`` of the arrays (one row per avatar)."""
     for i in range(rows.shape[0]):

@@ -16,7 +16,7 @@ from posecast.solver.calibration import Calibration, Mount
 from posecast.solver.kernels import bone_target_row
 from posecast.solver.tracking.body_model import SHIPPED, BodyModel
 from posecast.solver.tracking.devices import DEVICES, ELBOW_L, KNEE_R, SLOT
-from posecast.solver.tracking.fill import fill_batch, fill_row, new_state
+from posecast.solver.tracking.fill import fill_batch, new_state
 from posecast.solver.tracking.layout import ND, SHAPE_SIZE, STATE_SIZE
 from posecast.solver.tracking.shape import body_shape, bone_poses
 
@@ -127,11 +127,6 @@ class TrackingRows:
         """The targets and weights of these rows from their staged frames."""
         fill_batch(rows, self.dev, self.present, self.has, self.t, self.shape, self.state,
                    self.targets, self.weights)
-
-    def fill_one(self, row: int) -> None:
-        """``fill`` for one row (a server fills each frame's as it stages it)."""
-        fill_row(row, self.dev, self.present, self.has, self.t, self.shape, self.state,
-                 self.targets, self.weights)
 
 
 def lost_roles(lost: NDArray[np.bool_]) -> tuple[str, ...]:

@@ -133,7 +133,8 @@ def test_an_avatar_the_helper_never_finishes_is_taken_over(session: Session,
         own = (np.zeros(N, dtype=np.int64), np.empty((N, J, 4)), np.empty((N, 3)),
                np.zeros(N, dtype=np.int64))
         args = shared._analytic_args()
-        rows[:N] = np.arange(N)  # (their targets filled as they were staged)
+        rows[:N] = np.arange(N)
+        shared.tracking.fill(np.arange(N))  # the targets, as solve_staged makes them
         taken: list[int] = []
         thief = threading.Thread(target=lambda: taken.append(_take_one_and_vanish(control)))
         thief.start()
