@@ -448,8 +448,8 @@ class Session:
         """Hand each binary message over as the loop reads it, not through ``receive``.
 
         It is stamped when read, decoded once the loop has read (and stamped) whatever
-        else came (``reads_first``), and given to ``on_message`` with its arrival time (Pongs go
-        to the clock; bytes that do not decode, to ``on_error``). websockets' queue and
+        else came (``reads_first``), and given to ``on_message`` with its arrival time
+        (Pongs go to the clock; bytes that do not decode, to ``on_error``). websockets' queue and
         a reading task's turn per message were a sixth of the demo's spectators' time.
         A task must still await ``receive``: it takes what came before this call (and
         any text frame) and raises when the connection ends, or what a handler raised.
