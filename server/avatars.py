@@ -184,6 +184,15 @@ class AvatarSolver:
             self.tracking.stage(slot, slots, poses, t)
         return self._has_bits[avatar_id] & ~_present_bits(roles), new
 
+    def fill_staged(self, avatar_ids: list[int]) -> None:
+        """Make these avatars' targets from their staged frames now (those still here),
+        rather than in the solve: a room does it while it waits for the rest of a burst.
+        ``solve_staged`` fills only the frames not filled yet."""
+        slot = self._slot
+        rows = [slot[a] for a in avatar_ids if a in slot]
+        if rows:
+            self.tracking.fill(np.array(rows, dtype=np.intp))
+
     def helper(self) -> SolveHelper | None:
         """The helper thread over the current arrays (started on first use), if any."""
         if self._helper is None and (self.helper_cores or self._shared):
@@ -205,7 +214,7 @@ class AvatarSolver:
     def solve_staged(self, avatar_ids: list[int]) -> PoseBatch:
         """Solve these avatars (each staged) as one batch, each warm-started from its last
         pose; their new poses in the order asked (new arrays: the next solve does not
-        change them)."""
+        change them). Frames not filled yet (``fill_staged``) are filled first."""
         slot_list = [self._slot[a] for a in avatar_ids]
         t = self.tracking
         if slot_list:

@@ -182,6 +182,7 @@ class Room:
     _arrived: bool = False  # a frame came in during the current pass of the event loop
     _burst_start: float = 0.0
     _awaited: set[int] = field(default_factory=set)  # players due within the open burst
+    _unfilled: list[int] = field(default_factory=list)  # staged, their targets not made
     # with ``serve --redis``: the link to the other processes (server.cluster). An owned
     # room publishes its batches and rosters and keeps its avatars' records in Redis; a
     # relayed one is owned by another process: its avatars are a mirror of the owner's
@@ -265,11 +266,12 @@ class Room:
 
     def submit(self, avatar_id: int, frame: TrackerFrame | TrackerPoses,
                t_received: float) -> None:
-        """Queue a player's frame (latest wins) and make sure a solve is coming. Its
-        targets are computed now, while the rest of the burst is still arriving; a
-        ValueError (a capture time that is not near the server's clock) rejects this
-        frame alone. A frame may lack any of the avatar's devices: they are carried on
-        (``solver.tracking``) and counted, never refused."""
+        """Queue a player's frame (latest wins) and make sure a solve is coming. It is
+        staged now, and its targets made in a pass of the loop that reads no frame,
+        while the rest of the burst is still on its way; a ValueError (a capture time
+        that is not near the server's clock) rejects this frame alone. A frame may lack
+        any of the avatar's devices: they are carried on (``solver.tracking``) and
+        counted, never refused."""
         t_capture = frame.t_capture_server  # the client's sum: it may overflow
         if not abs(t_capture - t_received) <= self.limits.capture_skew_s:  # NaN, inf fail
             raise ValueError(f"tracker_frame.t_capture + clock_offset = {t_capture!r} is "
@@ -289,6 +291,7 @@ class Room:
         if avatar_id in self._pending:
             self.metrics.frames_superseded += 1
         self._pending[avatar_id] = (frame, t_received)
+        self._unfilled.append(avatar_id)
         self._arrived = True
         self._awaited.discard(avatar_id)
         due = None
@@ -332,6 +335,12 @@ class Room:
                 a.connection is not None and a.connection.arrivals
                 for a in self.avatars.values()))
         if arriving and now() - self._burst_start < self.coalesce_max_s:
+            if not self._arrived and self._unfilled:
+                # a pass that read no frame: the next is not here yet, so the targets
+                # of those in are made now rather than in the solve that all of them
+                # wait for (in a pass that reads, the next read would wait for it)
+                self.solver.fill_staged(self._unfilled)
+                self._unfilled.clear()
             self._arrived = False
             asyncio.get_running_loop().call_soon(self._solve_when_burst_ends)
             return
@@ -373,6 +382,7 @@ class Room:
         pending = [(a, f, t) for a, (f, t) in self._pending.items() if a in calibrated]
         self.metrics.frames_discarded += len(self._pending) - len(pending)
         self._pending.clear()
+        self._unfilled.clear()  # the solve fills those not filled yet
         if not pending:
             return
         pending.sort(key=lambda p: slot(p[0]))  # solved in place
@@ -520,6 +530,7 @@ class Room:
         """The server stopped with a burst open: its frames will never be solved."""
         self.metrics.frames_discarded += len(self._pending)
         self._pending.clear()
+        self._unfilled.clear()
 
 
 def roster_parts(infos: list[AvatarInfo], removed: list[int], max_avatars: int,

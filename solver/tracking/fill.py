@@ -302,12 +302,16 @@ def fill_targets(dev, present, has, t, shape, state, targets, weights):
 
 
 @njit(cache=True)
-def fill_batch(rows, dev, present, has, t, shape, state, targets, weights):
-    """``fill_targets`` for the avatars at ``rows`` of the arrays (one row per avatar)."""
+def fill_batch(rows, filled, dev, present, has, t, shape, state, targets, weights):
+    """``fill_targets`` for the avatars at ``rows`` of the arrays (one row per avatar)
+    not ``filled`` since their frame was staged; marks them filled."""
     for i in range(rows.shape[0]):
         r = rows[i]
+        if filled[r]:
+            continue
         fill_targets(dev[r], present[r], has[r], t[r], shape[r], state[r], targets[r],
                      weights[r])
+        filled[r] = True
 
 
 def new_state(shape: np.ndarray, calibration: np.ndarray, has: np.ndarray) -> np.ndarray:

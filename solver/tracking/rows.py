@@ -24,10 +24,12 @@ Array = NDArray[np.float64]
 
 
 @njit(cache=True)
-def stage_row(row, slots, poses, t, dev, present, has, mount_p, mount_q, times):
+def stage_row(row, slots, poses, t, dev, present, has, mount_p, mount_q, times, filled):
     """``TrackingRows.stage`` over the arrays: each mounted device's bone pose through its
     mount (an elbow's or knee's: its own position and its mount, which it steers by),
-    the present flags and the time. False if the frame has a device not mounted."""
+    the present flags and the time; the row is due a fill. False if the frame has a
+    device not mounted."""
+    filled[row] = False
     for d in range(present.shape[1]):
         present[row, d] = False
     every = True
@@ -71,9 +73,11 @@ class TrackingRows:
         self.weights = np.zeros((capacity, ND))
         self.mount_p = np.zeros((capacity, ND, 3))
         self.mount_q = np.tile([0.0, 0.0, 0.0, 1.0], (capacity, ND, 1))
+        # the targets and weights are of the row's staged frame: ``fill`` skips it
+        self.filled = np.zeros(capacity, dtype=np.bool_)
 
     _ARRAYS = ("dev", "present", "has", "t", "shape", "state", "targets", "weights",
-               "mount_p", "mount_q")
+               "mount_p", "mount_q", "filled")
 
     @property
     def capacity(self) -> int:
@@ -94,6 +98,7 @@ class TrackingRows:
         ``model``: the body model's constants."""
         self.has[row] = False
         self.present[row] = False
+        self.filled[row] = False
         for name in cal.mounts if devices is None else devices:
             if name in cal.mounts:
                 self.mount(row, name, cal.mounts[name])
@@ -117,16 +122,18 @@ class TrackingRows:
         row's next frame; devices the avatar has not mounted are left out (False when
         the frame has any). One compiled call: a server stages every frame it reads."""
         return bool(stage_row(row, slots, poses, t, self.dev, self.present, self.has,
-                              self.mount_p, self.mount_q, self.t))
+                              self.mount_p, self.mount_q, self.t, self.filled))
 
     def lost(self, row: int) -> NDArray[np.bool_]:
         """(ND,) the devices the avatar uses that its newest frame lacks."""
         return self.has[row] & ~self.present[row]
 
     def fill(self, rows: NDArray[np.intp]) -> None:
-        """The targets and weights of these rows from their staged frames."""
-        fill_batch(rows, self.dev, self.present, self.has, self.t, self.shape, self.state,
-                   self.targets, self.weights)
+        """The targets and weights of these rows from their staged frames: once a frame
+        (a row filled since its last ``stage`` is left as it is), so that a server can
+        fill a frame while it waits for the rest of its burst."""
+        fill_batch(rows, self.filled, self.dev, self.present, self.has, self.t, self.shape,
+                   self.state, self.targets, self.weights)
 
 
 def lost_roles(lost: NDArray[np.bool_]) -> tuple[str, ...]:
