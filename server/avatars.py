@@ -184,15 +184,6 @@ class AvatarSolver:
             self.tracking.stage(slot, slots, poses, t)
         return self._has_bits[avatar_id] & ~_present_bits(roles), new
 
-    def fill_staged(self, avatar_ids: list[int]) -> None:
-        """Make these avatars' targets from their staged frames now (those still here),
-        rather than in the solve: a room does it while it waits for the rest of a burst.
-        ``solve_staged`` fills only the frames not filled yet."""
-        slot = self._slot
-        rows = [slot[a] for a in avatar_ids if a in slot]
-        if rows:
-            self.tracking.fill(np.array(rows, dtype=np.intp))
-
     def helper(self) -> SolveHelper | None:
         """The helper thread over the current arrays (started on first use), if any."""
         if self._helper is None and (self.helper_cores or self._shared):
@@ -208,25 +199,27 @@ class AvatarSolver:
 
     def _analytic_args(self) -> tuple[object, ...]:
         t = self.tracking
-        return self.solver.analytic_args(self._offsets, t.targets, t.weights,
-                                       self._rotations, self._roots, self._iterations)
+        return (*self.solver.analytic_args(self._offsets, t.targets, t.weights,
+                                           self._rotations, self._roots, self._iterations),
+                t.filled, t.dev, t.present, t.has, t.t, t.shape, t.state)
 
     def solve_staged(self, avatar_ids: list[int]) -> PoseBatch:
         """Solve these avatars (each staged) as one batch, each warm-started from its last
         pose; their new poses in the order asked (new arrays: the next solve does not
-        change them). Frames not filled yet (``fill_staged``) are filled first."""
+        change them). Each frame's targets are made once (``TrackingRows.fill``)."""
         slot_list = [self._slot[a] for a in avatar_ids]
         t = self.tracking
-        if slot_list:
-            t.fill(np.array(slot_list, dtype=np.intp))
         helper = self.helper() if slot_list else None
-        if helper is not None:  # in place, wherever the rows are, with the helper
+        if helper is not None:  # in place, wherever the rows are, with the helper (who
+            # claims an avatar fills its targets, so the helper takes half of that too)
             n = len(slot_list)
             helper.rows[:n] = slot_list
             solve_analytic_shared(*helper.batch_args(n))
             slots = helper.rows[:n]
             return PoseBatch(self._rotations[slots], self._roots[slots],
                              self._iterations[slots])
+        if slot_list:
+            t.fill(np.array(slot_list, dtype=np.intp))
         first = slot_list[0] if slot_list else 0
         if slot_list == list(range(first, first + len(slot_list))):
             # side by side in slot order (a room's whole burst, sorted by slot): solve the

@@ -97,7 +97,6 @@ class WarmPath:
             if msg is None:
                 return
             self.solver.stage(TWIN, msg.roles, msg.poses, msg.t_capture_server)
-            self.solver.fill_staged([TWIN])  # as a room does while a burst comes in
             self._msg = msg
         elif self._phase == 1:
             self._solved = self.solver.solve_staged([TWIN])

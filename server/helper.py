@@ -22,6 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from posecast.solver.ik.shared import READY, STOP, analytic_helper, new_control
+from posecast.solver.tracking.layout import ND, STATE_SIZE
 
 log = logging.getLogger("posecast.server")
 
@@ -42,15 +43,19 @@ class SolveHelper:
 
     def __init__(self, cores: tuple[int, ...], args: tuple[object, ...], capacity: int,
                  joints: int) -> None:
-        """``args``: the solver's arguments over the whole arrays (``Solver.analytic_args``).
+        """``args``: the solver's arguments over the whole arrays (``Solver.analytic_args``),
+        then the tracking's (``AvatarSolver``).
         No ``cores``: no thread, the caller solves every avatar, through the same
         compiled code (the server's warm path keeps that code in the caches)."""
         self.cores = cores
         self.control = new_control()
         self.rows: NDArray[np.int64] = np.zeros(capacity, dtype=np.int64)
-        # who solved each avatar of a batch, and the helper's own results
+        # who solved each avatar of a batch, and the helper's own results: the pose, and
+        # the tracking state, targets and weights where it filled them
         self._own = (np.zeros(capacity, dtype=np.int64), np.empty((capacity, joints, 4)),
-                     np.empty((capacity, 3)), np.zeros(capacity, dtype=np.int64))
+                     np.empty((capacity, 3)), np.zeros(capacity, dtype=np.int64),
+                     np.empty((capacity, STATE_SIZE)), np.empty((capacity, ND, 7)),
+                     np.empty((capacity, ND)), np.zeros(capacity, dtype=np.bool_))
         self._args = args
         self.handed = 0  # avatars the helper solved, once it has stopped
         self._thread: threading.Thread | None = None

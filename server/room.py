@@ -182,7 +182,9 @@ class Room:
     _arrived: bool = False  # a frame came in during the current pass of the event loop
     _burst_start: float = 0.0
     _awaited: set[int] = field(default_factory=set)  # players due within the open burst
-    _unfilled: list[int] = field(default_factory=list)  # staged, their targets not made
+    # the codings of its calibrated avatars (their rosters'), for its batches: replaced,
+    # never changed, when one changes, so that a batch keeps the one it was solved with
+    _codings: Codings = field(default_factory=dict)
     # with ``serve --redis``: the link to the other processes (server.cluster). An owned
     # room publishes its batches and rosters and keeps its avatars' records in Redis; a
     # relayed one is owned by another process: its avatars are a mirror of the owner's
@@ -249,6 +251,7 @@ class Room:
             joint_names=sk.names, parents=tuple(int(p) for p in sk.parents),
             rest_offsets=offsets, devices=tuple(r for r in DEVICE_ROLES if r in devices),
             coding=self.solver.coding(avatar.avatar_id))
+        self._codings = {**self._codings, avatar.avatar_id: avatar.info.coding}
         return avatar.info
 
     def keep(self, avatar: Avatar, resumable: bool = True) -> None:
@@ -267,11 +270,10 @@ class Room:
     def submit(self, avatar_id: int, frame: TrackerFrame | TrackerPoses,
                t_received: float) -> None:
         """Queue a player's frame (latest wins) and make sure a solve is coming. It is
-        staged now, and its targets made in a pass of the loop that reads no frame,
-        while the rest of the burst is still on its way; a ValueError (a capture time
-        that is not near the server's clock) rejects this frame alone. A frame may lack
-        any of the avatar's devices: they are carried on (``solver.tracking``) and
-        counted, never refused."""
+        staged now, while the rest of the burst is still arriving; a ValueError (a
+        capture time that is not near the server's clock) rejects this frame alone. A
+        frame may lack any of the avatar's devices: they are carried on
+        (``solver.tracking``) and counted, never refused."""
         t_capture = frame.t_capture_server  # the client's sum: it may overflow
         if not abs(t_capture - t_received) <= self.limits.capture_skew_s:  # NaN, inf fail
             raise ValueError(f"tracker_frame.t_capture + clock_offset = {t_capture!r} is "
@@ -291,7 +293,6 @@ class Room:
         if avatar_id in self._pending:
             self.metrics.frames_superseded += 1
         self._pending[avatar_id] = (frame, t_received)
-        self._unfilled.append(avatar_id)
         self._arrived = True
         self._awaited.discard(avatar_id)
         due = None
@@ -335,12 +336,6 @@ class Room:
                 a.connection is not None and a.connection.arrivals
                 for a in self.avatars.values()))
         if arriving and now() - self._burst_start < self.coalesce_max_s:
-            if not self._arrived and self._unfilled:
-                # a pass that read no frame: the next is not here yet, so the targets
-                # of those in are made now rather than in the solve that all of them
-                # wait for (in a pass that reads, the next read would wait for it)
-                self.solver.fill_staged(self._unfilled)
-                self._unfilled.clear()
             self._arrived = False
             asyncio.get_running_loop().call_soon(self._solve_when_burst_ends)
             return
@@ -353,6 +348,8 @@ class Room:
             self.cluster.forget(self.name, avatar_id)
         avatar = self.avatars.pop(avatar_id, None)
         self.solver.remove(avatar_id)
+        if avatar_id in self._codings:
+            self._codings = {a: c for a, c in self._codings.items() if a != avatar_id}
         if self._pending.pop(avatar_id, None) is not None:
             self.metrics.frames_discarded += 1
         for s in self.spectators.values():
@@ -382,7 +379,6 @@ class Room:
         pending = [(a, f, t) for a, (f, t) in self._pending.items() if a in calibrated]
         self.metrics.frames_discarded += len(self._pending) - len(pending)
         self._pending.clear()
-        self._unfilled.clear()  # the solve fills those not filled yet
         if not pending:
             return
         pending.sort(key=lambda p: slot(p[0]))  # solved in place
@@ -410,7 +406,7 @@ class Room:
         avatars = self.avatars
         lost = [avatars[a].lost_bits if a in avatars else 0 for a in ids]
         shared = SharedBatch(ids, [f.seq for _, f, _ in pending], roots, rotations,
-                             t_capture, t_received, t_solved, lost, self.codings(ids),
+                             t_capture, t_received, t_solved, lost, self._codings,
                              rows_checked=True)
         self.metrics.frames_solved += len(pending)
         self.metrics.batches += 1
@@ -530,7 +526,6 @@ class Room:
         """The server stopped with a burst open: its frames will never be solved."""
         self.metrics.frames_discarded += len(self._pending)
         self._pending.clear()
-        self._unfilled.clear()
 
 
 def roster_parts(infos: list[AvatarInfo], removed: list[int], max_avatars: int,

@@ -17,6 +17,11 @@ compare-and-swap, so exactly one of them wins) and solved by the caller; the hel
 late result is then dropped. Each avatar is solved by ``solve_analytic_one`` from the
 same inputs either way, so the results are bit for bit those of ``solve_analytic_range``.
 
+Whoever claims an avatar first makes its targets from its staged frame, if they are not
+made yet (``solver.tracking``'s fill: lost and found devices), so that the helper takes
+half of that too. The helper fills into rows of its own (a copy of the avatar's tracking
+state, its targets and weights), which the caller copies in with the pose.
+
 ``control`` (``new_control``): CLAIM = seq << 40 | n << 20 | next avatar to claim; SEQ,
 the caller's batch count (wrapping, never 0); STOP ends the helper; READY is set once
 the helper runs its loop (without the GIL); DONE = seq << 32 | avatars solved (a late
@@ -32,6 +37,7 @@ from numpy.typing import NDArray
 
 from posecast.solver.atomics import atomic_cas, atomic_load, atomic_store, cpu_pause
 from posecast.solver.ik.analytic import analytic_work, solve_analytic_one
+from posecast.solver.tracking.fill import fill_targets
 
 CLAIM, SEQ, STOP, READY, DONE = 0, 1, 2, 3, 4
 FIELD = 20  # bits of n and of the next avatar in CLAIM
@@ -73,12 +79,13 @@ def _count_done(control, seq):
 
 
 @njit(cache=True, nogil=True)
-def analytic_helper(control, rows, state, out_q, out_root, out_it, parents, offsets,
-                    canon, pre, post, lo, hi, dofmask, pelvis, chains, lengths, targets,
-                    weights, q, root, w_rot, lam, refine, eps, iterations):
-    """The helper's loop, until STOP: claim an avatar, solve it into its own rows, mark
-    it done unless the caller took it over; spin while there is nothing to claim.
-    Returns the avatars whose results it handed over."""
+def analytic_helper(control, rows, state, out_q, out_root, out_it, own_track, own_targets,
+                    own_weights, own_filled, parents, offsets, canon, pre, post, lo, hi,
+                    dofmask, pelvis, chains, lengths, targets, weights, q, root, w_rot, lam,
+                    refine, eps, iterations, filled, dev, present, has, t, shape, track):
+    """The helper's loop, until STOP: claim an avatar, fill (if not filled) and solve it
+    into its own rows, mark it done unless the caller took it over; spin while there is
+    nothing to claim. Returns the avatars whose results it handed over."""
     work = analytic_work(q.shape[1], chains, lengths)
     handed = 0
     atomic_store(control, READY, 1)
@@ -91,12 +98,19 @@ def analytic_helper(control, rows, state, out_q, out_root, out_it, parents, offs
         if before >> 2 == seq:  # the caller took it over while this thread was away
             continue
         b = rows[i]
+        own_filled[i] = not filled[b]
+        if own_filled[i]:
+            own_track[i] = track[b]
+            fill_targets(dev[b], present[b], has[b], t[b], shape[b], own_track[i],
+                         own_targets[i], own_weights[i])
+            tg, w = own_targets[i], own_weights[i]
+        else:
+            tg, w = targets[b], weights[b]
         out_q[i] = q[b]
         out_root[i] = root[b]
         out_it[i] = solve_analytic_one(
             parents, offsets[b], canon, pre, post, lo, hi, dofmask, pelvis, chains,
-            lengths, targets[b], weights[b], out_q[i], out_root[i], w_rot, lam, refine, eps,
-            work)
+            lengths, tg, w, out_q[i], out_root[i], w_rot, lam, refine, eps, work)
         if atomic_cas(state, i, before, (seq << 2) | HELPER):
             _count_done(control, seq)
             handed += 1
@@ -106,19 +120,24 @@ def analytic_helper(control, rows, state, out_q, out_root, out_it, parents, offs
 @njit(cache=True, nogil=True)
 def _solve_here(i, rows, parents, offsets, canon, pre, post, lo, hi, dofmask, pelvis,
                 chains, lengths, targets, weights, q, root, w_rot, lam, refine, eps,
-                iterations, work):
-    """The caller solves avatar i of the batch in place."""
+                iterations, filled, dev, present, has, t, shape, track, work):
+    """The caller fills (if not filled) and solves avatar i of the batch in place."""
     b = rows[i]
+    if not filled[b]:
+        fill_targets(dev[b], present[b], has[b], t[b], shape[b], track[b], targets[b],
+                     weights[b])
+        filled[b] = True
     iterations[b] = solve_analytic_one(
         parents, offsets[b], canon, pre, post, lo, hi, dofmask, pelvis, chains, lengths,
         targets[b], weights[b], q[b], root[b], w_rot, lam, refine, eps, work)
 
 
 @njit(cache=True, nogil=True)
-def solve_analytic_shared(control, rows, n, state, out_q, out_root, out_it, parents,
-                          offsets, canon, pre, post, lo, hi, dofmask, pelvis, chains,
-                          lengths, targets, weights, q, root, w_rot, lam, refine, eps,
-                          iterations):
+def solve_analytic_shared(control, rows, n, state, out_q, out_root, out_it, own_track,
+                          own_targets, own_weights, own_filled, parents, offsets, canon,
+                          pre, post, lo, hi, dofmask, pelvis, chains, lengths, targets,
+                          weights, q, root, w_rot, lam, refine, eps, iterations, filled,
+                          dev, present, has, t, shape, track):
     """Post the avatars rows[:n] (rows of the arrays the helper was given), solve them
     with the helper, return when all are solved and in place. Returns how many the
     helper solved."""
@@ -135,7 +154,7 @@ def solve_analytic_shared(control, rows, n, state, out_q, out_root, out_it, pare
             break
         _solve_here(i, rows, parents, offsets, canon, pre, post, lo, hi, dofmask, pelvis,
                     chains, lengths, targets, weights, q, root, w_rot, lam, refine, eps,
-                    iterations, work)
+                    iterations, filled, dev, present, has, t, shape, track, work)
         atomic_store(state, i, mine)
         _count_done(control, seq)
     # wait for the avatars the helper holds; past TAKEOVER_SPINS, take them over: after
@@ -150,7 +169,8 @@ def solve_analytic_shared(control, rows, n, state, out_q, out_root, out_it, pare
                 if s != mine and s != theirs and atomic_cas(state, i, s, mine):
                     _solve_here(i, rows, parents, offsets, canon, pre, post, lo, hi,
                                 dofmask, pelvis, chains, lengths, targets, weights, q, root,
-                                w_rot, lam, refine, eps, iterations, work)
+                                w_rot, lam, refine, eps, iterations, filled, dev, present,
+                                has, t, shape, track, work)
             break
     helped = 0
     for i in range(n):
@@ -159,5 +179,10 @@ def solve_analytic_shared(control, rows, n, state, out_q, out_root, out_it, pare
             q[b] = out_q[i]
             root[b] = out_root[i]
             iterations[b] = out_it[i]
+            if own_filled[i]:
+                track[b] = own_track[i]
+                targets[b] = own_targets[i]
+                weights[b] = own_weights[i]
+                filled[b] = True
             helped += 1
     return helped

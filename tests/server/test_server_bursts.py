@@ -132,41 +132,6 @@ def test_a_burst_waits_for_the_players_due_with_it(session: Session,
     assert _burst(session, recording, window=0.002, due_2=0.005, early=0.0) == (set(), 1, 1)
 
 
-def test_a_frame_is_filled_while_its_burst_waits(session: Session,
-                                                recording: ViveRecording) -> None:
-    """A frame's targets are made in the first pass of the loop that reads no frame, not
-    in the solve the whole burst waits for, and not in a pass that reads (the next read
-    would wait): the same poses as a room whose frames all came in one pass."""
-    async def main() -> tuple[Room, Room]:
-        early, together = (_room(session, recording, window=60.0) for _ in range(2))
-        for room in (early, together):
-            room.avatars[1].cadence = Cadence(last=1.0 - PERIOD, period=PERIOD)
-            room.avatars[2].cadence = Cadence(last=1.0 - PERIOD, period=PERIOD)
-        filled = early.solver.tracking.filled
-        one = early.solver.slot_order(1)
-        early.submit(1, _frame(recording, 5), 1.0)
-        assert not filled[one]  # staged by the handler, not filled there
-        await asyncio.sleep(0)  # the pass after the read: a frame came, no fill
-        assert not filled[one]
-        await asyncio.sleep(0)  # a pass that read nothing: filled, the burst open
-        assert filled[one] and early.metrics.batches == 0
-        early.submit(2, _frame(recording, 6), 1.0)
-        together.submit(1, _frame(recording, 5), 1.0)
-        together.submit(2, _frame(recording, 6), 1.0)
-        for _ in range(3):
-            await asyncio.sleep(0)
-        return early, together
-
-    early, together = asyncio.run(main())
-    assert early.metrics.batches == together.metrics.batches == 1
-    assert early.metrics.frames_solved == together.metrics.frames_solved == 2
-    a, b = early.solver.tracking, together.solver.tracking
-    np.testing.assert_array_equal(a.state, b.state)
-    np.testing.assert_array_equal(a.targets, b.targets)
-    np.testing.assert_array_equal(early.solver.solve_staged([1, 2]).rotations,
-                                  together.solver.solve_staged([1, 2]).rotations)
-
-
 def test_a_tick_early_for_everyone_still_makes_one_burst(session: Session,
                                                          recording: ViveRecording) -> None:
     """Players are compared by when their frames are due, not by when this one came: a
