@@ -20,7 +20,7 @@ import hmac
 import math
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 from websockets.asyncio.server import broadcast
@@ -137,6 +137,7 @@ class RelayedBatch(SharedBatch):
                 b.rotations.reshape(len(counts), joints, 4))
 
 
+T = TypeVar("T")
 Delivery = tuple[SharedBatch, int]  # a batch and the index of one avatar in it
 
 # the longest a burst may keep a batch open: long enough that most of a tick's frames
@@ -383,32 +384,33 @@ class Room:
             return
         pending.sort(key=lambda p: slot(p[0]))  # solved in place
         ids = [a for a, _, _ in pending]
-        solved = self.solver.solve_staged(ids)
-        t_solved = now()
+        # the batch's rows but its poses, before the solve: after it, this Python runs
+        # with the caches full of the solve's (the demo's solve-to-send time)
+        avatars = self.avatars
+        seqs = [f.seq for _, f, _ in pending]
         t_capture = [f.t_capture_server for _, f, _ in pending]
         t_received = [t for _, _, t in pending]
+        lost = [avatars[a].lost_bits if a in avatars else 0 for a in ids]
+        captured, arrived = np.array(t_capture), np.array(t_received)
+        keep = np.empty(len(pending), dtype=np.bool_)
+        solved = self.solver.solve_staged(ids)
+        t_solved = now()
         roots, rotations = solved.root, solved.rotations
         # the spectators' own row checks: a row they would refuse is dropped alone,
         # never the batch (one compiled pass over the batch)
-        keep = np.empty(len(pending), dtype=np.bool_)
-        captured, arrived = np.array(t_capture), np.array(t_received)
         unsendable = sendable_rows(roots, rotations, captured, arrived, t_solved, keep)
         if unsendable:
             self.metrics.frames_unsendable += unsendable
-            pending = [p for p, k in zip(pending, keep.tolist(), strict=True) if k]
-            if not pending:
+            if not keep.any():
                 return
-            ids = [a for a, _, _ in pending]
-            t_capture = [f.t_capture_server for _, f, _ in pending]
-            t_received = [t for _, _, t in pending]
+            rows = keep.tolist()
+            ids, seqs, lost = _kept(ids, rows), _kept(seqs, rows), _kept(lost, rows)
+            t_capture, t_received = _kept(t_capture, rows), _kept(t_received, rows)
             roots, rotations = roots[keep], rotations[keep]
             captured, arrived = captured[keep], arrived[keep]
-        avatars = self.avatars
-        lost = [avatars[a].lost_bits if a in avatars else 0 for a in ids]
-        shared = SharedBatch(ids, [f.seq for _, f, _ in pending], roots, rotations,
-                             t_capture, t_received, t_solved, lost, self._codings,
-                             rows_checked=True)
-        self.metrics.frames_solved += len(pending)
+        shared = SharedBatch(ids, seqs, roots, rotations, t_capture, t_received, t_solved,
+                             lost, self._codings, rows_checked=True)
+        self.metrics.frames_solved += len(ids)
         self.metrics.batches += 1
         self.deliver(shared)
         # after the batch is out, so that it waits for nothing: a few numpy calls for the
@@ -526,6 +528,10 @@ class Room:
         """The server stopped with a burst open: its frames will never be solved."""
         self.metrics.frames_discarded += len(self._pending)
         self._pending.clear()
+
+
+def _kept(values: list[T], keep: list[bool]) -> list[T]:
+    return [v for v, k in zip(values, keep, strict=True) if k]
 
 
 def roster_parts(infos: list[AvatarInfo], removed: list[int], max_avatars: int,
