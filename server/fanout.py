@@ -130,19 +130,24 @@ class FanOut:
         self._batches[k] = shared
         self._came[k] = t
         self._frames_to[k] = self._frames_to[k - 1] + shared.size
+        self._owed.clear()
+        if self._at < len(self._round):
+            self._again = True
+            if self._next_slice is None:  # else the round goes on at its next slice
+                self._write(t, time.perf_counter() + self.slice_s)
+        else:
+            self._start_round()
+            self._write(t, time.perf_counter() + self.slice_s)
+        self._forget_old(t, k)
+
+    def _forget_old(self, t: float, k: int) -> None:
+        """Batches older than MAX_LAG_S are let go (a spectator behind skips them). After
+        the first slice: freeing a batch is not what the newest one should wait for."""
         self._frames_to.pop(k - FRAMES_KEPT, None)
         while self._oldest < k and t - self._came[self._oldest] > MAX_LAG_S:
             del self._batches[self._oldest], self._came[self._oldest]
             self._offers.pop(self._oldest, None)
             self._oldest += 1
-        self._owed.clear()
-        if self._at < len(self._round):
-            self._again = True
-            if self._next_slice is not None:  # the round goes on at its next slice
-                return
-        else:
-            self._start_round()
-        self._write(t, time.perf_counter() + self.slice_s)
 
     def flush(self) -> None:
         """Every batch written now (before a roster, which must follow them)."""
