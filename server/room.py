@@ -183,6 +183,7 @@ class Room:
     _arrived: bool = False  # a frame came in during the current pass of the event loop
     _burst_start: float = 0.0
     _awaited: set[int] = field(default_factory=set)  # players due within the open burst
+    _next_pass: asyncio.Handle | None = None  # the open burst's look in the next pass
     # the codings of its calibrated avatars (their rosters'), for its batches: replaced,
     # never changed, when one changes, so that a batch keeps the one it was solved with
     _codings: Codings = field(default_factory=dict)
@@ -295,7 +296,9 @@ class Room:
             self.metrics.frames_superseded += 1
         self._pending[avatar_id] = (frame, t_received)
         self._arrived = True
-        self._awaited.discard(avatar_id)
+        awaited = self._awaited
+        last_awaited = len(awaited) == 1 and avatar_id in awaited
+        awaited.discard(avatar_id)
         due = None
         if avatar is not None:
             if not self._scheduled:  # this frame opens a burst: when was it due?
@@ -318,7 +321,28 @@ class Room:
             self._awaited = {a.avatar_id for a in self.avatars.values()
                              if a.connected and a.avatar_id not in self._pending
                              and a.cadence.due_within(anchor - w, anchor + w)}
-            asyncio.get_running_loop().call_soon(self._solve_when_burst_ends)
+            if self._awaited or not self._everyone_in():
+                self._next_pass = asyncio.get_running_loop().call_soon(
+                    self._solve_when_burst_ends)
+                return
+        elif not last_awaited or not self._everyone_in():
+            return
+        # the frame every player of the burst is in with: solved now, in its read, not a
+        # pass of the loop later (17-26 us at the median in the demo, a frame's every
+        # other handler and callback of that pass)
+        self._solve_now()
+
+    def _solve_now(self) -> None:
+        if self._next_pass is not None:
+            self._next_pass.cancel()
+            self._next_pass = None
+        self._arrived = False
+        self._awaited.clear()
+        try:
+            self.solve_pending()
+        except Exception as exc:  # not the fault of the frame that closed the burst
+            asyncio.get_running_loop().call_exception_handler(
+                {"message": f"room {self.name!r}: solving a burst failed", "exception": exc})
 
     def _everyone_in(self) -> bool:
         """Every connected, calibrated player has a frame in the open burst: no one is
@@ -338,8 +362,10 @@ class Room:
                 for a in self.avatars.values()))
         if arriving and now() - self._burst_start < self.coalesce_max_s:
             self._arrived = False
-            asyncio.get_running_loop().call_soon(self._solve_when_burst_ends)
+            self._next_pass = asyncio.get_running_loop().call_soon(
+                self._solve_when_burst_ends)
             return
+        self._next_pass = None
         self._arrived = False
         self._awaited.clear()
         self.solve_pending()

@@ -112,6 +112,9 @@ def _burst(session: Session, rec: ViveRecording, window: float, due_2: float,
         batches, solved = room.metrics.batches, room.metrics.frames_solved
         if batches == 0:  # still open: player 2 comes, one batch of both
             room.submit(2, _frame(rec, 6), 1.0 + due_2)
+            # solved in the read of the frame the burst waited for, not a pass later
+            assert (room.metrics.batches, room.metrics.frames_solved) == (1, 2)
+            assert bursts.count == 0
             for _ in range(3):
                 await asyncio.sleep(0)
             assert (room.metrics.batches, room.metrics.frames_solved) == (1, 2)
@@ -130,6 +133,32 @@ def test_a_burst_waits_for_the_players_due_with_it(session: Session,
     assert _burst(session, recording, window=60.0, due_2=0.0003, early=0.0) == ({2}, 0, 0)
     # player 2 is out of step (due 5 ms later): player 1's frame is solved at once
     assert _burst(session, recording, window=0.002, due_2=0.005, early=0.0) == (set(), 1, 1)
+
+
+def test_a_burst_that_fails_to_solve_is_reported_not_blamed_on_its_last_frame(
+        session: Session, recording: ViveRecording) -> None:
+    """The frame that completes a burst solves it in its own read: a solve that raises
+    (a bug) goes to the loop's exception handler, not to that frame's submit, which
+    would refuse a good frame."""
+    async def main() -> list[dict[str, object]]:
+        reported: list[dict[str, object]] = []
+        asyncio.get_running_loop().set_exception_handler(lambda _, c: reported.append(c))
+        room = _room(session, recording, window=60.0, bursts=OpenBursts())
+        for a in (1, 2):
+            room.avatars[a].cadence = Cadence(last=1.0 - PERIOD, period=PERIOD)
+
+        def broken(avatar_ids: list[int]) -> None:
+            raise RuntimeError("a bug in the solve")
+
+        room.solver.solve_staged = broken  # type: ignore[assignment,method-assign]
+        room.submit(1, _frame(recording, 5), 1.0)
+        room.submit(2, _frame(recording, 6), 1.0)  # completes the burst: no exception
+        assert room.bursts is not None and room.bursts.count == 0  # closed all the same
+        return reported
+
+    reported = asyncio.run(main())
+    assert len(reported) == 1 and "solving a burst failed" in str(reported[0]["message"])
+    assert isinstance(reported[0]["exception"], RuntimeError)
 
 
 def test_a_tick_early_for_everyone_still_makes_one_burst(session: Session,
