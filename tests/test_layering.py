@@ -2,9 +2,10 @@
 "Layout"). Imports inside functions count: a lazy import is still a dependency.
 
 - protocol/ and solver/ are pure: no network, process, GPU or device library. websockets'
-  sans-I/O core (frames, protocol, exceptions, and speedups' apply_mask) is allowed:
-  protocol.arrivals stamps its frames, protocol.framing masks a player's. solver.readers
-  parse files given by path (text in, arrays out).
+  sans-I/O core (frames, protocol, streams, exceptions, and speedups' apply_mask) is
+  allowed: protocol.arrivals stamps its frames and reads a lone frame where its parser
+  (a StreamReader's generators) waits between frames, protocol.framing masks a
+  player's. solver.readers parse files given by path (text in, arrays out).
 - server/ never imports client/.
 - in client/, nothing imports ``cli`` and only ``cli`` imports ``bench``; no package
   imports another's underscore (private) modules or names.
@@ -30,8 +31,8 @@ IO_LIBRARIES = frozenset({
     "multiprocessing", "threading", "http", "urllib", "uvloop", "redis", "websockets",
     "moderngl", "glfw", "openvr", "cv2", "PIL", "pythonosc", "prometheus_client",
 })
-SANS_IO_WEBSOCKETS = ("websockets.frames", "websockets.protocol", "websockets.exceptions",
-                      "websockets.speedups")
+SANS_IO_WEBSOCKETS = ("websockets.frames", "websockets.protocol", "websockets.streams",
+                      "websockets.exceptions", "websockets.speedups")
 SERVER_IMPORTERS = frozenset({"cli", "bench"})
 SERVER_SHARED = "posecast.server.avatars"
 
