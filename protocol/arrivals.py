@@ -9,8 +9,9 @@ share one process, one spectator's decoding does not count as another's network 
 A connection may also take a hot message type straight from there (``fast_path``):
 it then skips websockets' queue and the reading task's turn; and, when a read is exactly
 one whole binary frame while websockets' parser waits between frames, its parser too
-(``protocol.framing.lone_binary_payload``): a burst's frames are read one after another
-by a server whose every frame costs the next one's wait.
+(``protocol.framing.lone_binary_payload``): ~2 us less of each such read's time, a
+player's tracker frame on the server, a batch on a spectator's end
+(``scripts/frame_reads.py``).
 No I/O here: it only observes the bytes and frames websockets is given.
 """
 

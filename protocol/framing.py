@@ -14,7 +14,7 @@ of a fragmented message; the writers check that before they write.
 
 The readers' twin: ``lone_binary_payload`` takes a read that is exactly one such frame
 (``protocol.arrivals``: a player's tracker frame, a spectator's batch, each its own
-write), where websockets' parser costs ~3.4 us a frame (its generators, ``Frame``).
+write), where websockets' parser costs ~3 us a frame (its generators, ``Frame``).
 """
 
 from __future__ import annotations

@@ -130,8 +130,8 @@ class TrackingRows:
 
     def fill(self, rows: NDArray[np.intp]) -> None:
         """The targets and weights of these rows from their staged frames: once a frame
-        (a row filled since its last ``stage`` is left as it is), so that a server can
-        fill a frame while it waits for the rest of its burst."""
+        (a row filled since its last ``stage`` is left as it is), whichever thread of a
+        shared solve (``solver.ik.shared``) or repeated solve asks."""
         fill_batch(rows, self.filled, self.dev, self.present, self.has, self.t, self.shape,
                    self.state, self.targets, self.weights)
 
